@@ -1,0 +1,184 @@
+"""The Model interface every material implements, and the registry that names them.
+
+A *lobe* is a pure function ``lobe(g: Angles, ...) -> Tensor[..., C]`` returning a BRDF value in
+1/sr (no cosine), 0 where ``g.front`` is false. It lives in the file of its model family
+(``fresnel.py``, ``oren_nayar.py``, ``microfacet.py`` ...).
+
+A *model* composes lobes into a whole material and declares the parameters it needs, so that the
+renderer allocates, samples and the solver optimises only those (DESIGN.md, "skip what a scene
+does not need"). Models are registered by name::
+
+    import materials
+    model = materials.get("gotanda2014", diffuse="fitted")
+    f = model.brdf(materials.Angles.from_vectors(n, l, v), {"albedo": a, "f0": f0, "roughness": r})
+
+Radiometry (DESIGN.md): reflected radiance from one light of irradiance E (perpendicular to its
+direction) and visibility V is ``E · V · model.cosine_brdf(g, p)``, where
+``cosine_brdf = f_r · (n·l)⁺``.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from .geometry import Angles
+from .params import ParamSpec, check_params
+
+if TYPE_CHECKING:
+    from .environment import Environment
+
+
+class Model:
+    """Base class of a material model.
+
+    Subclasses set :attr:`params` and implement :meth:`brdf`; they may override
+    :meth:`cosine_brdf` when the product with n·l is cheaper or better conditioned than the BRDF
+    alone (e.g. Gotanda's 1/max(n·l, n·v)), and :meth:`environment` when their paper defines a
+    response to environment lighting.
+
+    Attributes:
+        name: registry name (set by :func:`register`).
+        description: one line for :func:`available`.
+        params: the parameters this model reads, in canonical form.
+    """
+
+    name: str = ""
+    description: str = ""
+    params: tuple[ParamSpec, ...] = ()
+
+    # -- to implement -------------------------------------------------------------------------
+    def brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
+        """BRDF value f_r in 1/sr, shape ``[..., 3]``; 0 where n·l ≤ 0 or n·v ≤ 0.
+
+        Args:
+            g: shading cosines, each ``[..., 1]``.
+            p: canonical parameters by name, each ``[..., channels]`` broadcastable against ``g``.
+        """
+        raise NotImplementedError(f"{type(self).__name__}.brdf")
+
+    def cosine_brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
+        """``f_r · max(n·l, 0)``, shape ``[..., 3]``: radiance per unit irradiance (1/sr)."""
+        return self.brdf(g, p) * g.nl.clamp_min(0.0)
+
+    def environment(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
+        """Radiance ``[..., 3]`` reflected toward ``v`` from an environment light ``env``.
+
+        ``n`` and ``v`` are unit vectors ``[..., 3]``. Models whose paper defines an environment
+        response override this; the default raises so that no approximation is invented silently.
+        """
+        raise NotImplementedError(
+            f"model '{self.name}' defines no response to {type(env).__name__} lighting; "
+            f"use directional/point lights or a model that supports it (see docs/models.md)"
+        )
+
+    # -- shared behaviour ---------------------------------------------------------------------
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.params)
+
+    def spec(self, name: str) -> ParamSpec:
+        for s in self.params:
+            if s.name == name:
+                return s
+        raise KeyError(f"model '{self.name}' has no parameter '{name}'; it has {list(self.param_names)}")
+
+    def defaults(self, shape: tuple[int, ...] = (), device=None, dtype=None) -> dict[str, Tensor]:
+        """Default value of every parameter, each ``[*shape, channels]``."""
+        return {s.name: s.full(shape, device=device, dtype=dtype) for s in self.params}
+
+    def check(self, p: Mapping[str, Tensor]) -> None:
+        """Validate a parameter dict (names, channels, ranges) with a message naming the problem."""
+        check_params(self.params, p, where=f"model '{self.name}'")
+
+    def __call__(self, n: Tensor, l: Tensor, v: Tensor, **params: Tensor) -> Tensor:
+        """Convenience: BRDF from vectors, with defaults for omitted parameters, checked."""
+        g = Angles.from_vectors(n, l, v)
+        unknown = set(params) - set(self.param_names)
+        if unknown:
+            raise ValueError(
+                f"model '{self.name}' got unknown parameter(s) {sorted(unknown)}; "
+                f"it takes {list(self.param_names)}"
+            )
+        full = self.defaults(device=g.nl.device, dtype=g.nl.dtype)
+        full.update({k: torch.as_tensor(x, dtype=g.nl.dtype, device=g.nl.device) for k, x in params.items()})
+        full = {k: (x.unsqueeze(-1) if x.dim() == 0 else x) for k, x in full.items()}
+        self.check(full)
+        return self.brdf(g, full)
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} '{self.name}' params={list(self.param_names)}>"
+
+
+class SumModel(Model):
+    """Sum of independent models' BRDFs (e.g. a diffuse lobe plus a specular lobe).
+
+    Parameters are the union of the parts' (by name); a parameter shared by two parts is shared.
+    """
+
+    def __init__(self, *parts: Model, name: str = "", description: str = ""):
+        if not parts:
+            raise ValueError("SumModel needs at least one part")
+        self.parts = parts
+        self.name = name or "+".join(p.name for p in parts)
+        self.description = description
+        seen: dict[str, ParamSpec] = {}
+        for part in parts:
+            for s in part.params:
+                seen.setdefault(s.name, s)
+        self.params = tuple(seen.values())
+
+    def brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
+        return sum(part.brdf(g, p) for part in self.parts)
+
+    def cosine_brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
+        return sum(part.cosine_brdf(g, p) for part in self.parts)
+
+
+# -- registry ---------------------------------------------------------------------------------
+_REGISTRY: dict[str, tuple[Callable[..., Model], str]] = {}
+
+
+def register(name: str, description: str) -> Callable:
+    """Decorator: register a Model subclass or a factory ``(**options) -> Model`` under ``name``."""
+
+    def deco(factory):
+        if name in _REGISTRY:
+            raise ValueError(f"model name '{name}' registered twice")
+        _REGISTRY[name] = (factory, description)
+        return factory
+
+    return deco
+
+
+def get(name: str, **options) -> Model:
+    """Instantiate the registered model ``name`` with its ``options``.
+
+    Raises:
+        ValueError: unknown name (the message lists every available name) or an option the
+            model does not take (the message lists the options it takes).
+    """
+    if name not in _REGISTRY:
+        raise ValueError(
+            f"unknown model '{name}'. Available models: {', '.join(sorted(_REGISTRY))} "
+            f"(materials.available() describes each)"
+        )
+    factory, description = _REGISTRY[name]
+    try:
+        inspect.signature(factory).bind(**options)
+    except TypeError as exc:
+        sig = inspect.signature(factory)
+        raise ValueError(f"model '{name}' does not take options {sorted(options)}: {exc}; signature {sig}") from None
+    model = factory(**options)
+    model.name = name if not options else f"{name}({', '.join(f'{k}={v}' for k, v in sorted(options.items()))})"
+    model.description = model.description or description
+    return model
+
+
+def available() -> dict[str, str]:
+    """Registered model names with their one-line descriptions, sorted by name."""
+    return {k: _REGISTRY[k][1] for k in sorted(_REGISTRY)}

@@ -1,0 +1,26 @@
+"""Shared fixtures: the device matrix (CPU always, CUDA when present) and float64 helpers."""
+
+import pytest
+import torch
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def pytest_collection_modifyitems(config, items):
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="no CUDA device")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture(params=DEVICES)
+def device(request):
+    """Every test taking ``device`` runs on CPU, and on CUDA when a GPU is present."""
+    return torch.device(request.param)
+
+
+@pytest.fixture
+def rng():
+    return torch.Generator().manual_seed(1234)

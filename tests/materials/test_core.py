@@ -1,0 +1,61 @@
+"""Geometry (Angles), the Model interface and the registry."""
+
+import math
+
+import pytest
+import torch
+
+import materials
+from materials import Angles
+from materials.geometry import safe_normalize
+
+
+def _unit(*xyz):
+    v = torch.tensor(xyz, dtype=torch.float64)
+    return v / v.norm()
+
+
+def test_angles_from_vectors_and_cosines_agree():
+    g = torch.Generator().manual_seed(0)
+    n = safe_normalize(torch.randn(500, 3, generator=g, dtype=torch.float64))
+    l = safe_normalize(torch.randn(500, 3, generator=g, dtype=torch.float64))
+    v = safe_normalize(torch.randn(500, 3, generator=g, dtype=torch.float64))
+    a = Angles.from_vectors(n, l, v)
+    b = Angles.from_cosines(a.nl, a.nv, a.lv)
+    for f in ("nl", "nv", "nh", "lh", "lv"):
+        torch.testing.assert_close(getattr(a, f), getattr(b, f), atol=1e-9, rtol=1e-9)
+
+
+def test_angles_half_vector_at_opposite_directions_is_finite():
+    n = _unit(0, 0, 1)
+    l = _unit(1, 0, 0.2).requires_grad_()
+    v = -l.detach()
+    a = Angles.from_vectors(n, l, v)
+    assert not a.front.item()
+    (grad,) = torch.autograd.grad(a.nh.sum() + a.lh.sum(), l)
+    assert torch.isfinite(grad).all()
+
+
+def test_mirror_cosine():
+    n, l, v = _unit(0, 0, 1), _unit(1, 0, 1), _unit(-1, 0, 1)
+    assert Angles.from_vectors(n, l, v).rv.item() == pytest.approx(1.0)
+
+
+def test_registry_errors_name_the_problem():
+    with pytest.raises(ValueError, match="unknown model 'nope'.*lambert"):
+        materials.get("nope")
+    with pytest.raises(ValueError, match="does not take options"):
+        materials.get("lambert", colour=1)
+    assert "lambert" in materials.available()
+
+
+def test_lambert_golden_and_parameter_checks():
+    m = materials.get("lambert")
+    n = _unit(0, 0, 1)
+    f = m(n, _unit(0.3, 0, 1), _unit(-0.2, 0.1, 1), albedo=torch.tensor([0.5, 0.25, 1.0], dtype=torch.float64))
+    torch.testing.assert_close(f, torch.tensor([0.5, 0.25, 1.0], dtype=torch.float64) / math.pi)
+    assert m(n, _unit(0, 0, -1), n).abs().max().item() == 0.0  # light below the horizon
+    with pytest.raises(ValueError, match="'albedo' must lie in"):
+        m(n, n, n, albedo=torch.tensor([1.5, 0.0, 0.0]))
+    with pytest.raises(ValueError, match="unknown parameter"):
+        m(n, n, n, f0=torch.tensor([0.04]))
