@@ -24,3 +24,15 @@ def device(request):
 @pytest.fixture
 def rng():
     return torch.Generator().manual_seed(1234)
+
+
+# Property tests: bounded example counts so the whole suite stays within CI's budget.
+try:
+    from hypothesis import HealthCheck, settings
+
+    settings.register_profile(
+        "shadecap", max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+    )
+    settings.load_profile("shadecap")
+except ImportError:  # pragma: no cover
+    pass
