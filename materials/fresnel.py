@@ -187,8 +187,9 @@ def fresnel_from_f0(f0, cos) -> Tensor:
     Written in s rather than η so that f0 = 1 (η = ∞) is exact: F ≡ 1.
 
     Args:
-        f0: reflectance at normal incidence ``[..., C]`` in [0, 1] (values below F0_EPS act as
-            F0_EPS for the square root; f0 = 0 returns exactly 0, the η = 1 limit).
+        f0: reflectance at normal incidence ``[..., C]`` in [0, 1]. f0 ≤ F0_EPS = 1e-12 is treated
+            as no interface (η = 1) and returns exactly 0, also at cos = 0, where any η ≠ 1 gives 1:
+            this keeps float32 (where such an f0 underflows) and float64 in agreement.
         cos: ``[..., 1]`` (clamped to [0, 1]).
 
     Returns:
@@ -203,7 +204,7 @@ def fresnel_from_f0(f0, cos) -> Tensor:
     rp = _div((s + 1.0) * c + (s - 1.0) * a, (s + 1.0) * c - (s - 1.0) * a, 1.0)
     rs = _div((s - 1.0) * c + (s + 1.0) * a, (s - 1.0) * c - (s + 1.0) * a, 1.0)
     f = 0.5 * (rp.square() + rs.square())
-    return torch.where(f0 <= 0.0, torch.zeros_like(f), f).clamp(0.0, 1.0)
+    return torch.where(f0 <= F0_EPS, torch.zeros_like(f), f).clamp(0.0, 1.0)
 
 
 def fresnel_spherical_gaussian(f0, cos) -> Tensor:
@@ -264,7 +265,9 @@ def fresnel_conductor(eta, k, cos) -> Tensor:
     t3 = c2 * ab2 + s2 * s2
     t4 = two_ac * s2
     rp = rs * _div(t3 - t4, t3 + t4, 1.0)
-    return (0.5 * (rs + rp)).clamp(0.0, 1.0)
+    f = 0.5 * (rs + rp)
+    no_interface = (eta == 1.0) & (k == 0.0)  # as fresnel_dielectric: 0 even at cos = 0
+    return torch.where(no_interface, torch.zeros_like(f), f).clamp(0.0, 1.0)
 
 
 def fresnel_schuler(f0, cos) -> Tensor:
