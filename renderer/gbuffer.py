@@ -1,0 +1,213 @@
+"""Ray-cast G-buffers of known geometry: what every camera sample sees, computed once per view.
+
+:func:`render_gbuffer` casts one ray per sample (k×k per pixel with ``supersample=k``, see
+:meth:`renderer.camera.Camera.pixel_grid`) with embree (``trimesh.ray.ray_pyembree``, first hit
+only) and keeps only the rays that hit the mesh. For each hit it recomputes the ray/triangle
+intersection in float64 (Möller-Trumbore on the face embree reported) to get the exact distance
+and barycentrics (b0, b1, b2) = (1 − β − γ, β, γ) — embree works in float32 — and interpolates:
+
+- ``position = o + t·d`` (on the ray exactly; world units),
+- ``normal`` = normalise(Σ b_i n_i), the interpolated shading normal,
+- ``geo_normal`` = the face's unit normal from its winding,
+- ``uv`` = Σ b_i uv_i,
+- ``view = −d`` (unit, toward the camera).
+
+Two-sided surfaces: where the ray hits the back of a face (geo_normal · view < 0, e.g. an open
+plane seen from below or the inside of an open mesh) *both* ``geo_normal`` and ``normal`` are
+flipped, so that ``geo_normal`` always faces the camera and the shading normal keeps its relation
+to it; ``backface`` records where this happened. The shading normal itself may still face away
+from the camera at silhouettes of coarse smooth-shaded meshes (normal · view ≤ 0): the shading
+code drops those samples (no light can be reflected toward v from below the shading horizon).
+
+All fields hold hit samples only, flat (N = number of hit rays); a camera that sees nothing gives
+N = 0 and :attr:`GBuffer.coverage` 0 — the caller decides whether that is an error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .camera import Camera, _check_supersample
+from .mesh import Mesh
+
+__all__ = ["GBuffer", "render_gbuffer", "intersect_faces"]
+
+
+@dataclass
+class GBuffer:
+    """Hit samples of one view (module docstring gives the meaning of each field).
+
+    Attributes:
+        pixel: ``[N]`` int64 flat pixel index y·W + x of each sample.
+        weight: ``[N]`` 1/k² (the sample's share of its pixel).
+        position: ``[N, 3]`` world position of the hit.
+        normal: ``[N, 3]`` unit interpolated shading normal (flipped with a back face).
+        geo_normal: ``[N, 3]`` unit face normal, facing the camera.
+        uv: ``[N, 2]`` texture coordinates.
+        face: ``[N]`` int64 index of the hit face.
+        view: ``[N, 3]`` unit direction toward the camera.
+        depth: ``[N]`` distance along the ray from the camera centre (world units).
+        backface: ``[N]`` bool, the ray hit the back of the face.
+        height, width, supersample: image size and k.
+    """
+
+    pixel: Tensor
+    weight: Tensor
+    position: Tensor
+    normal: Tensor
+    geo_normal: Tensor
+    uv: Tensor
+    face: Tensor
+    view: Tensor
+    depth: Tensor
+    backface: Tensor
+    height: int
+    width: int
+    supersample: int = 1
+
+    def __len__(self) -> int:
+        return int(self.pixel.shape[0])
+
+    @property
+    def n_samples(self) -> int:
+        return len(self)
+
+    @property
+    def coverage(self) -> float:
+        """Fraction of the image area covered by the mesh, Σ weight / (H·W), in [0, 1]."""
+        return float(self.weight.sum().item()) / (self.height * self.width) if len(self) else 0.0
+
+    def pixel_weight(self) -> Tensor:
+        """Per-pixel covered fraction ``[H, W]`` (1 inside, fractional on edges with supersampling)."""
+        img = torch.zeros(self.height * self.width, dtype=self.weight.dtype, device=self.weight.device)
+        return img.index_add(0, self.pixel, self.weight).reshape(self.height, self.width)
+
+    def to_image(self, values: Tensor, background: float | Tensor = 0.0) -> Tensor:
+        """Resolve per-sample values ``[N, C]`` (or ``[N]``) into an image ``[H, W, C]`` (or ``[H, W]``).
+
+        Each pixel is Σ weight·value over its samples plus (1 − Σ weight)·background, i.e. the box
+        filtered average of the k×k supersamples with misses showing the background. Differentiable
+        with respect to ``values``.
+        """
+        if not isinstance(values, Tensor) or values.shape[:1] != (len(self),) or values.dim() not in (1, 2):
+            raise ValueError(
+                f"GBuffer.to_image: values must be a tensor [N] or [N, C] with N = {len(self)} samples, "
+                f"got {tuple(getattr(values, 'shape', ()))}"
+            )
+        squeeze = values.dim() == 1
+        v = values[:, None] if squeeze else values
+        C = v.shape[1]
+        w = self.weight.to(v)
+        acc = torch.zeros(self.height * self.width, C, dtype=v.dtype, device=v.device)
+        acc = acc.index_add(0, self.pixel.to(v.device), v * w[:, None])
+        bg = torch.as_tensor(background, dtype=v.dtype, device=v.device)
+        if bool((bg != 0).any()):
+            cov = torch.zeros(self.height * self.width, dtype=v.dtype, device=v.device)
+            cov = cov.index_add(0, self.pixel.to(v.device), w)
+            acc = acc + (1.0 - cov)[:, None] * bg.reshape(1, -1)
+        img = acc.reshape(self.height, self.width, C)
+        return img[..., 0] if squeeze else img
+
+    def to(self, device=None, dtype=None) -> GBuffer:
+        """Move every tensor to ``device``; floating fields are cast to ``dtype`` when given."""
+        out = {}
+        for f in fields(self):
+            x = getattr(self, f.name)
+            if isinstance(x, Tensor):
+                x = x.to(device=device, dtype=dtype if (dtype is not None and x.is_floating_point()) else None)
+            out[f.name] = x
+        return GBuffer(**out)
+
+    def select(self, index: Tensor) -> GBuffer:
+        """A G-buffer of a subset of the samples (boolean mask or index ``[M]``)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        for k, x in out.items():
+            if isinstance(x, Tensor):
+                out[k] = x[index]
+        return GBuffer(**out)
+
+
+def intersect_faces(mesh: Mesh, origins: np.ndarray, directions: np.ndarray, faces: np.ndarray):
+    """Exact (float64) Möller-Trumbore intersection of rays with given faces (one face per ray).
+
+    Returns ``(t [M], beta [M], gamma [M])``: distance along the (unit) direction and the
+    barycentrics of vertices 1 and 2. No hit test is made (the face is known to be hit); the
+    determinant is guarded against 0 (ray parallel to the face → t = inf).
+    """
+    tri = mesh.tm.vertices[mesh.tm.faces[faces]]  # [M,3,3] float64
+    e1 = tri[:, 1] - tri[:, 0]
+    e2 = tri[:, 2] - tri[:, 0]
+    p = np.cross(directions, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    ok = np.abs(det) > 1e-300
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = origins - tri[:, 0]
+    beta = np.einsum("ij,ij->i", s, p) * inv
+    q = np.cross(s, e1)
+    gamma = np.einsum("ij,ij->i", directions, q) * inv
+    t = np.where(ok, np.einsum("ij,ij->i", e2, q) * inv, np.inf)
+    return t, beta, gamma
+
+
+def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1) -> GBuffer:
+    """Ray-cast the G-buffer of ``mesh`` seen by ``camera`` (see module docstring).
+
+    Args:
+        mesh: the object (its embree scene is built once and cached on the mesh).
+        camera: an OpenCV camera.
+        supersample: k, casting k×k rays per pixel (1 = pixel centres).
+
+    Returns:
+        A :class:`GBuffer` of float32 (torch default dtype) tensors on the CPU.
+    """
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"render_gbuffer: mesh must be a renderer.mesh.Mesh, got {type(mesh).__name__}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"render_gbuffer: camera must be a renderer.camera.Camera, got {type(camera).__name__}")
+    k = _check_supersample(supersample)
+    origins_t, dirs_t = camera.rays(k, dtype=torch.float64)
+    dirs = dirs_t.numpy()
+    origin = origins_t[0].numpy()
+    index_tri = mesh.intersector.intersects_first(ray_origins=np.broadcast_to(origin, dirs.shape), ray_directions=dirs)
+    ray = np.nonzero(index_tri >= 0)[0]
+    face = index_tri[ray]
+    d = dirs[ray]
+    o = np.broadcast_to(origin, d.shape)
+    t, beta, gamma = intersect_faces(mesh, o, d, face)
+    # embree is float32: a hit near an edge may come out a hair outside the face; clamp and renormalise
+    b = np.stack([1.0 - beta - gamma, beta, gamma], 1).clip(0.0, None)
+    b /= b.sum(1, keepdims=True)
+    t = np.where(np.isfinite(t), t, 0.0)
+    pos = o + t[:, None] * d
+
+    dt = torch.get_default_dtype()
+    F = mesh.tm.faces[face]  # [N,3]
+    n = np.einsum("nk,nkc->nc", b, mesh._normals64()[F])
+    n /= np.linalg.norm(n, axis=1, keepdims=True).clip(1e-300, None)
+    uv = np.einsum("nk,nkc->nc", b, mesh._uvs64()[F])
+    tri = mesh.tm.vertices[F]
+    gn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    gn /= np.linalg.norm(gn, axis=1, keepdims=True).clip(1e-300, None)
+    view = -d
+    back = np.einsum("ij,ij->i", gn, view) < 0
+    sign = np.where(back, -1.0, 1.0)[:, None]
+    f32 = lambda x: torch.from_numpy(np.ascontiguousarray(x)).to(dt)
+    return GBuffer(
+        pixel=torch.from_numpy((ray // (k * k)).astype(np.int64)),
+        weight=torch.full((len(ray),), 1.0 / (k * k), dtype=dt),
+        position=f32(pos),
+        normal=f32(n * sign),
+        geo_normal=f32(gn * sign),
+        uv=f32(uv),
+        face=torch.from_numpy(face.astype(np.int64)),
+        view=f32(view),
+        depth=f32(t),
+        backface=torch.from_numpy(back),
+        height=camera.height,
+        width=camera.width,
+        supersample=k,
+    )
