@@ -1,0 +1,829 @@
+"""The shadecap dataset format on disk: ``scene.json`` + mesh + images (+ ground truth), versioned.
+
+A dataset is a folder (``docs/dataset-format.md`` is the full specification, with an example)::
+
+    my_capture/
+      scene.json          format "shadecap-dataset", version 1: mesh, encoding, saturation,
+                          one entry per image (file, OpenCV camera, lights, exposure), optional gt
+      mesh.obj            the object, with UVs (OBJ / PLY / GLB through trimesh)
+      images/000.exr ...  linear EXR (encoding "linear") or sRGB PNG (encoding "srgb")
+      gt/albedo.exr ...   synthetic scenes only: one linear EXR map per model parameter,
+      gt/regions.png      and an optional region-id map (8/16-bit gray, code = region id)
+
+Radiometry (DESIGN.md): an image's pixel value (after decoding the file's transfer function) is
+``exposure · L`` with L the linear radiance (W/(m² sr) for lights in W/sr and metres);
+:meth:`Dataset.load_images` divides by the exposure. A pixel whose file value reaches the
+saturation level in any channel is *clipped*: its true value is unknown (≥ the level), and the
+observation stage drops it.
+
+:func:`load_dataset` validates everything it reads and raises :class:`DatasetError` (a
+``ValueError``) whose message names the file, the field and the fix. Non-finite pixels are not an
+error (DESIGN.md: the observation stage drops NaN pixels): the loader warns with their count
+(:class:`DatasetWarning`) and keeps them, but an image with no finite pixel at all is an error.
+:func:`write_dataset` writes into a temporary folder next to the destination, validates it with
+:func:`load_dataset`, and moves it in place with :func:`os.replace`: a reader never sees a
+half-written dataset, and a failed write leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import numbers
+import os
+import shutil
+import tempfile
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from materials import Model, SumModel
+from materials import get as get_model
+from renderer.camera import Camera, CameraError
+from renderer.imageio import ImageIOError, decode, read_exr, read_png, write_exr, write_png
+from renderer.lights import LightError, light_from_dict, light_to_dict
+from renderer.mesh import Mesh, MeshError, load_mesh, save_mesh
+
+__all__ = [
+    "FORMAT", "VERSION", "ENCODINGS", "DatasetError", "DatasetWarning", "View", "GroundTruth", "Photo", "Dataset",
+    "load_dataset", "write_dataset", "model_from_spec", "model_spec", "camera_sees_mesh",
+]
+
+#: The ``format`` string of every shadecap dataset's ``scene.json``.
+FORMAT = "shadecap-dataset"
+#: The newest format version this code reads and the one it writes.
+VERSION = 1
+#: Colour encodings: "linear" → EXR files holding exposure·L; "srgb" → PNG files, sRGB-encoded.
+ENCODINGS = {"linear": (".exr",), "srgb": (".png",)}
+SCENE_FILE = "scene.json"
+IMAGE_DIR = "images"
+GT_DIR = "gt"
+_IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg", ".tif", ".tiff")
+_TOP_KEYS = {"format", "version", "mesh", "encoding", "bits", "saturation", "images", "gt", "meta"}
+_VIEW_KEYS = {"file", "camera", "lights", "exposure", "name"}
+_GT_KEYS = {"model", "maps", "regions", "render", "photo"}
+
+
+class DatasetError(ValueError):
+    """A dataset that cannot be read or written; the message names the file, the field and the fix."""
+
+
+class DatasetWarning(UserWarning):
+    """Something in a dataset that is usable but deserves attention (non-finite pixels, unknown fields)."""
+
+
+def _err(file, field_: str | None, problem: str, fix: str = "") -> DatasetError:
+    where = f"{file}" + (f": field '{field_}'" if field_ else "")
+    return DatasetError(f"{where}: {problem}" + (f"; {fix}" if fix else ""))
+
+
+# ----------------------------------------------------------------------------------------------
+# model specs
+
+
+def model_spec(name_or_spec, options: Mapping | None = None) -> dict:
+    """Normalise a model description to the JSON spec stored in ``scene.json``.
+
+    Accepted: a registered name (``"microfacet"``) with ``options``; a sum written ``"a+b"`` (each
+    part with default options); or a spec dict ``{"name": str, "options": {...}}`` /
+    ``{"sum": [spec, ...]}``. Returns the dict form (not yet validated against the registry; see
+    :func:`model_from_spec`).
+    """
+    if isinstance(name_or_spec, Mapping):
+        if options:
+            raise ValueError("model_spec: give options inside the spec dict, not separately")
+        spec = dict(name_or_spec)
+        if "sum" in spec:
+            parts = spec["sum"]
+            if not isinstance(parts, Sequence) or isinstance(parts, str) or not parts:
+                raise ValueError(f"model spec 'sum' must be a non-empty list of specs, got {parts!r}")
+            return {"sum": [model_spec(p) for p in parts]}
+        if not isinstance(spec.get("name"), str):
+            raise ValueError(f"model spec needs a 'name' (a registered model) or a 'sum' list, got {spec!r}")
+        opts = spec.get("options", {}) or {}
+        if not isinstance(opts, Mapping):
+            raise ValueError(f"model spec 'options' must be an object, got {opts!r}")
+        return {"name": spec["name"], "options": dict(opts)}
+    if not isinstance(name_or_spec, str) or not name_or_spec.strip():
+        raise ValueError(f"a model is a registered name or a spec dict, got {name_or_spec!r}")
+    names = [s.strip() for s in name_or_spec.split("+")]
+    if len(names) > 1:
+        if options:
+            raise ValueError(f"model '{name_or_spec}': per-part options need the spec form {{'sum': [...]}}")
+        return {"sum": [{"name": n, "options": {}} for n in names]}
+    return {"name": names[0], "options": dict(options or {})}
+
+
+def model_from_spec(spec) -> Model:
+    """Instantiate the model a spec describes (see :func:`model_spec`) via ``materials.get``.
+
+    Raises:
+        ValueError: unknown name or option (``materials.get``'s message, listing the names).
+    """
+    spec = model_spec(spec)
+    if "sum" in spec:
+        parts = [model_from_spec(p) for p in spec["sum"]]
+        return parts[0] if len(parts) == 1 else SumModel(*parts)
+    return get_model(spec["name"], **spec["options"])
+
+
+# ----------------------------------------------------------------------------------------------
+# data classes
+
+
+@dataclass
+class View:
+    """One photo: its file, the camera that took it, the lights that lit it, its exposure.
+
+    Attributes:
+        camera: OpenCV camera (:class:`renderer.camera.Camera`); its width/height are the image's.
+        lights: light objects (:mod:`renderer.lights`: point, directional, hemisphere, SH), in the
+            world frame of the mesh.
+        exposure: positive multiplier, dimensionless: file value = exposure · radiance.
+        file: path of the image relative to the dataset folder (``images/000.exr``); on writing,
+            an empty string lets :func:`write_dataset` name it.
+        name: optional label.
+    """
+
+    camera: Camera
+    lights: list
+    exposure: float = 1.0
+    file: str = ""
+    name: str = ""
+
+
+@dataclass
+class GroundTruth:
+    """The true material of a synthetic dataset.
+
+    Attributes:
+        model: the model spec (``{"name", "options"}`` or ``{"sum": [...]}``).
+        maps: parameter name → linear map ``[H, W, C]`` float32 (row 0 = top = v = 1), exactly
+            ``model.params``.
+        regions: optional region-id map ``[H, W]`` int64 (same size as the maps).
+        region_names: region id → name (every id in ``regions`` has a name).
+        render: how the images were rendered (``supersample``, ``sampling``, ``shadows``).
+        photo: the photo model's settings (a dict, see :class:`capture.photo.PhotoModel`).
+        files: parameter name → relative file (``gt/albedo.exr``) once written/read.
+    """
+
+    model: dict
+    maps: dict[str, Tensor]
+    regions: Tensor | None = None
+    region_names: dict[int, str] = field(default_factory=dict)
+    render: dict = field(default_factory=dict)
+    photo: dict = field(default_factory=dict)
+    files: dict[str, str] = field(default_factory=dict)
+
+    def build_model(self) -> Model:
+        """The :class:`materials.Model` of :attr:`model`."""
+        return model_from_spec(self.model)
+
+
+@dataclass
+class Photo:
+    """One loaded image in linear radiance.
+
+    Attributes:
+        radiance: ``[H, W, 3]`` decoded pixel / exposure (W/(m² sr) in the lights' units); NaN/inf
+            pixels are kept as they are for the observation stage to drop.
+        saturated: ``[H, W]`` bool, some channel reached the saturation level (value unknown).
+        nonfinite: ``[H, W]`` bool, some channel is NaN or inf.
+    """
+
+    radiance: Tensor
+    saturated: Tensor
+    nonfinite: Tensor
+
+
+@dataclass
+class Dataset:
+    """A loaded, validated dataset (see :func:`load_dataset`).
+
+    Attributes:
+        root: the dataset folder.
+        mesh: the loaded mesh (UVs checked); mesh_file: its path relative to ``root``.
+        views: one :class:`View` per image, in ``scene.json`` order.
+        encoding: "linear" (EXR) or "srgb" (PNG).
+        bits: PNG bit depth (8 or 16) for "srgb"; None for "linear".
+        saturation: clipping level in file units — an integer code for "srgb", a file value or None
+            (never clipped) for "linear".
+        gt: ground truth of a synthetic dataset, or None.
+        meta: free-form metadata (generator, configuration, highlight coverage ...).
+        warnings: the warnings raised while loading (also issued as :class:`DatasetWarning`).
+    """
+
+    root: Path
+    mesh: Mesh
+    mesh_file: str
+    views: list[View]
+    encoding: str
+    bits: int | None
+    saturation: float | int | None
+    gt: GroundTruth | None = None
+    meta: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    @property
+    def cameras(self) -> list[Camera]:
+        return [v.camera for v in self.views]
+
+    def saturation_linear(self) -> float | None:
+        """The saturation level as a decoded (linear) file value, or None when nothing clips."""
+        if self.saturation is None:
+            return None
+        if self.encoding == "linear":
+            return float(self.saturation)
+        # the same float32 arithmetic as renderer.imageio.read_png, so a pixel at the level compares equal
+        code = torch.tensor([float(self.saturation)], dtype=torch.float32) / np.float32((1 << self.bits) - 1)
+        return float(decode(code, "srgb")[0])
+
+    def read_file_image(self, i: int) -> Tensor:
+        """View ``i``'s image as decoded file values ``[H, W, 3]`` float32 (validated, not divided by exposure)."""
+        img, _ = _read_view_image(self.root, self.views[i], i, self.encoding, self.bits)
+        return img
+
+    def load_images(self, dtype: torch.dtype = torch.float32, device=None) -> list[Photo]:
+        """Every image as linear radiance: decode (sRGB for PNG), divide by the view's exposure.
+
+        Returns:
+            one :class:`Photo` per view; ``saturated`` marks pixels whose file value reached
+            :attr:`saturation` in any channel (compared in file units before dividing).
+
+        Raises:
+            DatasetError: an image changed on disk since loading and no longer validates.
+        """
+        sat = self.saturation_linear()
+        out = []
+        for i, view in enumerate(self.views):
+            img, _ = _read_view_image(self.root, view, i, self.encoding, self.bits)
+            nonfinite = ~torch.isfinite(img).all(-1)
+            if sat is None:
+                saturated = torch.zeros(img.shape[:2], dtype=torch.bool)
+            else:
+                saturated = (torch.nan_to_num(img, nan=-math.inf) >= sat * (1 - 1e-6)).any(-1)
+            rad = img.to(torch.float64) / float(view.exposure)
+            out.append(Photo(rad.to(dtype=dtype, device=device), saturated.to(device), nonfinite.to(device)))
+        return out
+
+
+# ----------------------------------------------------------------------------------------------
+# checks
+
+
+def camera_sees_mesh(camera: Camera, vertices: Tensor) -> tuple[bool, str]:
+    """Cheap test that ``camera`` sees some of the mesh, without a G-buffer.
+
+    Projects every vertex; the camera sees the mesh if some vertex is in front (depth > 0) and
+    either the 2D bounding box of the projected in-front vertices overlaps the image
+    ([−½, W − ½] × [−½, H − ½]) or the mesh straddles the camera plane (vertices on both sides,
+    where a bounding box of projections says nothing). Returns ``(sees, reason_if_not)``.
+    """
+    v = vertices.detach().to("cpu", torch.float64)
+    cam = camera.to(torch.float64)
+    pix, depth = cam.project(v)
+    front = depth > 1e-9 * max(1.0, float(v.abs().max()))
+    if not bool(front.any()):
+        return False, "the whole mesh is behind the camera (every vertex has depth ≤ 0)"
+    if not bool(front.all()):
+        return True, ""
+    p = pix[front]
+    lo, hi = p.min(0).values, p.max(0).values
+    W, H = camera.width, camera.height
+    if hi[0] < -0.5 or lo[0] > W - 0.5 or hi[1] < -0.5 or lo[1] > H - 0.5:
+        return False, (
+            f"the mesh projects to x ∈ [{lo[0]:.1f}, {hi[0]:.1f}], y ∈ [{lo[1]:.1f}, {hi[1]:.1f}] px, "
+            f"outside the {W}×{H} image"
+        )
+    return True, ""
+
+
+def _number(x, file, fld, *, positive=False, nonneg=False, allow_none=False):
+    if x is None and allow_none:
+        return None
+    if isinstance(x, bool) or not isinstance(x, numbers.Real) or not math.isfinite(float(x)):
+        raise _err(file, fld, f"must be a finite number, got {x!r}")
+    x = float(x)
+    if positive and x <= 0:
+        raise _err(file, fld, f"must be positive, got {x!r}")
+    if nonneg and x < 0:
+        raise _err(file, fld, f"must be non-negative, got {x!r}")
+    return x
+
+
+def _relative_file(root: Path, rel, file, fld) -> Path:
+    if not isinstance(rel, str) or not rel.strip():
+        raise _err(file, fld, f"must be a file path relative to the dataset folder, got {rel!r}")
+    p = Path(rel)
+    if p.is_absolute() or ".." in p.parts:
+        raise _err(file, fld, f"'{rel}' must be relative to the dataset folder and stay inside it",
+                   "copy the file into the dataset folder and give its relative path")
+    return root / p
+
+
+def _png_bit_depth(path: Path) -> int | None:
+    with open(path, "rb") as fh:
+        head = fh.read(26)
+    if len(head) >= 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        return head[24]
+    return None
+
+
+def _read_view_image(root: Path, view: View, i: int, encoding: str, bits: int | None) -> tuple[Tensor, int]:
+    """Read and check one view's image → (decoded file values ``[H, W, 3]`` float32, non-finite pixel count)."""
+    path = root / view.file
+    fld = f"images[{i}].file"
+    suffix = path.suffix.lower()
+    if suffix not in ENCODINGS[encoding]:
+        raise _err(SCENE_FILE, fld, f"'{view.file}' is not a {'/'.join(ENCODINGS[encoding])} file, but the "
+                   f"dataset's encoding is '{encoding}'", "convert the image or fix 'encoding'")
+    if not path.is_file():
+        raise _err(path, None, f"image listed in {SCENE_FILE} ({fld}) does not exist",
+                   "add the file or remove its entry")
+    try:
+        if encoding == "linear":
+            img = read_exr(path)
+        else:
+            depth = _png_bit_depth(path)
+            if depth is not None and depth != bits:
+                raise _err(path, None, f"PNG has {depth}-bit samples but {SCENE_FILE} says bits = {bits}",
+                           f"write the image with {bits} bits or fix 'bits'")
+            img = read_png(path, "srgb")
+    except ImageIOError as exc:
+        raise _err(path, None, f"unreadable image ({fld}): {exc}", "rewrite the file") from None
+    H, W = view.camera.height, view.camera.width
+    if img.shape[0] != H or img.shape[1] != W:
+        raise _err(path, None, f"image is {img.shape[1]}×{img.shape[0]} px but its camera ({SCENE_FILE} "
+                   f"images[{i}].camera) is {W}×{H}", "resize the image or fix the camera's width/height and K")
+    c = img.shape[2]
+    if c == 1:
+        img = img.expand(H, W, 3).contiguous()
+    elif c != 3:
+        raise _err(path, None, f"image has {c} channels; a photo must be RGB (3) or gray (1)",
+                   "drop the alpha channel")
+    finite = torch.isfinite(img).all(-1)
+    bad = int((~finite).sum())
+    if bad == H * W:
+        raise _err(path, None, f"every pixel ({bad}) is NaN or inf", "re-export the image")
+    return img, bad
+
+
+def _as_list(x, file, fld, nonempty=True) -> list:
+    if not isinstance(x, list):
+        raise _err(file, fld, f"must be a JSON list, got {type(x).__name__}")
+    if nonempty and not x:
+        raise _err(file, fld, "must not be empty")
+    return x
+
+
+def _as_obj(x, file, fld) -> dict:
+    if not isinstance(x, dict):
+        raise _err(file, fld, f"must be a JSON object, got {type(x).__name__}")
+    return x
+
+
+def _warn(msgs: list[str], msg: str) -> None:
+    msgs.append(msg)
+    warnings.warn(DatasetWarning(msg), stacklevel=3)
+
+
+# ----------------------------------------------------------------------------------------------
+# loading
+
+
+def load_dataset(path, *, check_images: bool = True) -> Dataset:
+    """Load and validate a dataset folder (or its ``scene.json``).
+
+    Checks, each failure a :class:`DatasetError` naming the file, the field and the fix:
+    ``scene.json`` exists and is valid JSON; ``format`` and ``version`` (≤ :data:`VERSION`);
+    required fields and their types; ``encoding`` ("linear"/"srgb"), ``bits``, ``saturation``;
+    per image: ``file`` (relative, inside the folder, the encoding's suffix, listed once),
+    ``camera`` (:meth:`Camera.from_dict`), ``lights`` (:func:`renderer.lights.light_from_dict`:
+    known type, non-negative intensities), ``exposure`` > 0, the camera sees the mesh
+    (:func:`camera_sees_mesh`); the mesh loads and has UVs; the image files in ``images/`` are
+    exactly the listed ones (count mismatch); with ``check_images``: every image is readable, not
+    truncated, RGB, of its camera's size, with some finite pixel; the ``gt`` block: the model
+    exists (``materials.get``), maps are exactly the model's parameters, same size, right channels,
+    finite and within each parameter's range; the region map's ids all have names.
+
+    Non-finite pixels are counted and reported as a :class:`DatasetWarning` (kept in the images;
+    the observation stage drops them). Unknown fields are ignored with a warning.
+    """
+    p = Path(path)
+    root = p.parent if p.name == SCENE_FILE or p.is_file() else p
+    scene = root / SCENE_FILE
+    msgs: list[str] = []
+    if not root.is_dir():
+        raise _err(root, None, "dataset folder does not exist")
+    if not scene.is_file():
+        raise _err(scene, None, "missing; a dataset folder must hold scene.json", "see docs/dataset-format.md")
+    try:
+        doc = json.loads(scene.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise _err(scene, None, f"malformed JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}",
+                   "fix the syntax (e.g. python -m json.tool scene.json)") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise _err(scene, None, f"cannot be read: {exc}") from None
+    doc = _as_obj(doc, scene, "(top level)")
+    if doc.get("format") != FORMAT:
+        raise _err(scene, "format", f"must be '{FORMAT}', got {doc.get('format')!r}",
+                   "this is not a shadecap dataset, or its header is damaged")
+    version = doc.get("version")
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise _err(scene, "version", f"must be an integer, got {version!r}")
+    if version < 1 or version > VERSION:
+        raise _err(scene, "version", f"unknown version {version}; this shadecap reads versions 1..{VERSION}",
+                   "upgrade shadecap" if version > VERSION else "fix the version")
+    for key in ("mesh", "encoding", "images"):
+        if key not in doc:
+            raise _err(scene, key, "is missing", "see docs/dataset-format.md for the required fields")
+    unknown = sorted(set(doc) - _TOP_KEYS)
+    if unknown:
+        _warn(msgs, f"{scene}: ignoring unknown top-level field(s) {unknown}")
+
+    encoding = doc["encoding"]
+    if encoding not in ENCODINGS:
+        raise _err(scene, "encoding", f"must be one of {sorted(ENCODINGS)}, got {encoding!r}")
+    bits = None
+    if encoding == "srgb":
+        bits = doc.get("bits", 8)
+        if bits not in (8, 16) or isinstance(bits, bool):
+            raise _err(scene, "bits", f"must be 8 or 16 for sRGB PNG images, got {bits!r}")
+    saturation = doc.get("saturation")
+    if encoding == "srgb":
+        top = (1 << bits) - 1
+        if saturation is None:
+            saturation = top
+        if isinstance(saturation, bool) or not isinstance(saturation, int) or not 1 <= saturation <= top:
+            raise _err(scene, "saturation", f"must be an integer code in [1, {top}] for {bits}-bit PNG, got "
+                       f"{saturation!r}", f"use {top} (the largest code) unless the camera clips lower")
+    else:
+        saturation = _number(saturation, scene, "saturation", positive=True, allow_none=True)
+
+    # mesh
+    mesh_path = _relative_file(root, doc["mesh"], scene, "mesh")
+    try:
+        mesh = load_mesh(mesh_path)
+    except MeshError as exc:
+        raise _err(scene, "mesh", str(exc)) from None
+
+    # views
+    entries = _as_list(doc["images"], scene, "images")
+    views: list[View] = []
+    seen: dict[str, int] = {}
+    for i, e in enumerate(entries):
+        e = _as_obj(e, scene, f"images[{i}]")
+        for key in ("file", "camera", "lights", "exposure"):
+            if key not in e:
+                raise _err(scene, f"images[{i}].{key}", "is missing",
+                           'add it (e.g. "exposure": 1.0)' if key == "exposure" else "see docs/dataset-format.md")
+        extra = sorted(set(e) - _VIEW_KEYS)
+        if extra:
+            _warn(msgs, f"{scene}: images[{i}]: ignoring unknown field(s) {extra}")
+        _relative_file(root, e["file"], scene, f"images[{i}].file")
+        key = os.path.normpath(e["file"])
+        if key in seen:
+            raise _err(scene, f"images[{i}].file", f"'{e['file']}' is listed twice (also images[{seen[key]}])")
+        seen[key] = i
+        try:
+            cam = Camera.from_dict(e["camera"])
+        except CameraError as exc:
+            raise _err(scene, f"images[{i}].camera", str(exc)) from None
+        lights_raw = _as_list(e["lights"], scene, f"images[{i}].lights")
+        lights = []
+        for j, d in enumerate(lights_raw):
+            try:
+                lights.append(light_from_dict(d))
+            except LightError as exc:
+                raise _err(scene, f"images[{i}].lights[{j}]", str(exc)) from None
+        exposure = _number(e["exposure"], scene, f"images[{i}].exposure", positive=True)
+        name = e.get("name", "")
+        if not isinstance(name, str):
+            raise _err(scene, f"images[{i}].name", f"must be a string, got {name!r}")
+        sees, why = camera_sees_mesh(cam, mesh.vertices)
+        if not sees:
+            raise _err(scene, f"images[{i}].camera", f"the camera does not see the mesh: {why}",
+                       "check R and t (world-to-camera, OpenCV: x right, y down, z forward) and the mesh units")
+        views.append(View(cam, lights, exposure, str(Path(e["file"]).as_posix()), name))
+
+    # image count: the images/ folder holds exactly the listed images
+    img_dir = root / IMAGE_DIR
+    if img_dir.is_dir():
+        on_disk = sorted(f"{IMAGE_DIR}/{f.name}" for f in img_dir.iterdir()
+                         if f.is_file() and f.suffix.lower() in _IMAGE_SUFFIXES and not f.name.startswith("."))
+        listed = {os.path.normpath(v.file) for v in views}
+        unlisted = [f for f in on_disk if os.path.normpath(f) not in listed]
+        if unlisted:
+            raise _err(scene, "images", f"lists {len(views)} image(s) but {img_dir} holds {len(on_disk)} image "
+                       f"file(s); not listed: {unlisted[:5]}{' ...' if len(unlisted) > 5 else ''}",
+                       "add an entry for each image or remove the extra files")
+
+    if check_images:
+        for i, view in enumerate(views):
+            _, bad = _read_view_image(root, view, i, encoding, bits)
+            if bad:
+                H, W = view.camera.height, view.camera.width
+                _warn(msgs, f"{root / view.file}: {bad} of {H * W} pixel(s) are NaN or inf; they are kept and the "
+                      f"observation stage drops them")
+
+    gt = None
+    if "gt" in doc and doc["gt"] is not None:
+        gt = _load_gt(root, scene, doc["gt"], msgs)
+    meta = doc.get("meta", {}) or {}
+    if not isinstance(meta, dict):
+        raise _err(scene, "meta", f"must be a JSON object, got {type(meta).__name__}")
+    return Dataset(root, mesh, str(Path(doc["mesh"]).as_posix()), views, encoding, bits, saturation, gt, meta, msgs)
+
+
+def _load_gt(root: Path, scene: Path, g, msgs: list[str]) -> GroundTruth:
+    g = _as_obj(g, scene, "gt")
+    for key in ("model", "maps"):
+        if key not in g:
+            raise _err(scene, f"gt.{key}", "is missing")
+    extra = sorted(set(g) - _GT_KEYS)
+    if extra:
+        _warn(msgs, f"{scene}: gt: ignoring unknown field(s) {extra}")
+    try:
+        spec = model_spec(g["model"])
+        model = model_from_spec(spec)
+    except ValueError as exc:
+        raise _err(scene, "gt.model", str(exc), "use a name from materials.available()") from None
+    maps_raw = _as_obj(g["maps"], scene, "gt.maps")
+    names = set(model.param_names)
+    missing, unexpected = sorted(names - set(maps_raw)), sorted(set(maps_raw) - names)
+    if missing or unexpected:
+        raise _err(scene, "gt.maps", f"must hold exactly the parameters of model '{model.name}' {sorted(names)}"
+                   + (f"; missing {missing}" if missing else "") + (f"; unexpected {unexpected}" if unexpected else ""))
+    maps, files, size = {}, {}, None
+    for spec_p in model.params:
+        rel = maps_raw[spec_p.name]
+        fpath = _relative_file(root, rel, scene, f"gt.maps.{spec_p.name}")
+        if fpath.suffix.lower() != ".exr":
+            raise _err(scene, f"gt.maps.{spec_p.name}", f"'{rel}' must be a linear .exr map")
+        try:
+            m = read_exr(fpath)
+        except ImageIOError as exc:
+            raise _err(fpath, None, f"unreadable ground-truth map (gt.maps.{spec_p.name}): {exc}") from None
+        if m.shape[2] not in (1, spec_p.channels):
+            raise _err(fpath, None, f"map '{spec_p.name}' has {m.shape[2]} channel(s), the parameter has "
+                       f"{spec_p.channels}")
+        if size is None:
+            size = tuple(m.shape[:2])
+        elif tuple(m.shape[:2]) != size:
+            raise _err(fpath, None, f"map is {m.shape[1]}×{m.shape[0]} but the other gt maps are {size[1]}×{size[0]}",
+                       "write every map at the same size")
+        try:
+            spec_p.check(m, where=str(fpath))
+        except ValueError as exc:
+            raise _err(fpath, None, str(exc)) from None
+        maps[spec_p.name] = m
+        files[spec_p.name] = str(Path(rel).as_posix())
+    regions, region_names = None, {}
+    if g.get("regions") is not None:
+        r = _as_obj(g["regions"], scene, "gt.regions")
+        if "file" not in r:
+            raise _err(scene, "gt.regions.file", "is missing")
+        rpath = _relative_file(root, r["file"], scene, "gt.regions.file")
+        try:
+            raw = read_png(rpath, "linear")
+        except ImageIOError as exc:
+            raise _err(rpath, None, f"unreadable region map (gt.regions.file): {exc}") from None
+        depth = _png_bit_depth(rpath) or 8
+        if raw.shape[2] != 1:
+            raise _err(rpath, None, f"region map must be a 1-channel gray PNG, got {raw.shape[2]} channels")
+        regions = torch.round(raw[..., 0].double() * ((1 << depth) - 1)).long()
+        if size is not None and tuple(regions.shape) != size:
+            raise _err(rpath, None, f"region map is {regions.shape[1]}×{regions.shape[0]}, the maps are "
+                       f"{size[1]}×{size[0]}")
+        names_raw = _as_obj(r.get("names", {}), scene, "gt.regions.names")
+        try:
+            region_names = {int(k): str(v) for k, v in names_raw.items()}
+        except ValueError:
+            raise _err(scene, "gt.regions.names", "keys must be integer region ids (as strings)") from None
+        ids = sorted(int(x) for x in torch.unique(regions))
+        unnamed = [k for k in ids if k not in region_names]
+        if unnamed:
+            raise _err(scene, "gt.regions.names", f"region id(s) {unnamed} in {rpath.name} have no name",
+                       "name every id that occurs in the map")
+    render = _as_obj(g.get("render", {}) or {}, scene, "gt.render")
+    photo = _as_obj(g.get("photo", {}) or {}, scene, "gt.photo")
+    return GroundTruth(spec, maps, regions, region_names, dict(render), dict(photo), files)
+
+
+# ----------------------------------------------------------------------------------------------
+# writing
+
+
+def _jsonable(x):
+    if isinstance(x, Tensor):
+        return x.detach().cpu().double().tolist()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, Mapping):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, Path):
+        return str(x)
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def _dumps(x, indent: int = 0) -> str:
+    """JSON with objects indented and lists of numbers (and of number lists, e.g. K) on one line."""
+    pad, inner = " " * indent, " " * (indent + 2)
+    flat = lambda v: not isinstance(v, (dict, list)) or (isinstance(v, list) and all(
+        not isinstance(w, (dict, list)) for w in v))
+    if isinstance(x, dict):
+        if not x:
+            return "{}"
+        items = [f"{inner}{json.dumps(str(k))}: {_dumps(v, indent + 2)}" for k, v in x.items()]
+        return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+    if isinstance(x, list):
+        if all(flat(v) for v in x):
+            return json.dumps(x, allow_nan=False, separators=(", ", ": "))
+        return "[\n" + ",\n".join(inner + _dumps(v, indent + 2) for v in x) + "\n" + pad + "]"
+    return json.dumps(x, allow_nan=False)
+
+
+def _fix_permissions(folder: Path) -> None:
+    """mkdtemp/mkstemp create private (0700/0600) entries; give the dataset the usual umask permissions."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(folder, 0o777 & ~umask)
+    for dirpath, dirnames, filenames in os.walk(folder):
+        for d in dirnames:
+            os.chmod(os.path.join(dirpath, d), 0o777 & ~umask)
+        for f in filenames:
+            os.chmod(os.path.join(dirpath, f), 0o666 & ~umask)
+
+
+def write_dataset(
+    out_dir,
+    mesh: Mesh,
+    views: Sequence[View],
+    images: Sequence[Tensor],
+    *,
+    encoding: str = "linear",
+    bits: int = 8,
+    saturation: float | int | None = None,
+    half: bool = False,
+    gt: GroundTruth | None = None,
+    meta: Mapping | None = None,
+    overwrite: bool = False,
+    validate: bool = True,
+) -> Path:
+    """Write a dataset folder atomically and return its path.
+
+    Everything is written into a temporary folder in ``out_dir``'s parent (``.NAME.tmp-*``), then
+    (with ``validate``) read back with :func:`load_dataset`, then moved in place with
+    :func:`os.replace`. On any failure the temporary folder is removed and ``out_dir`` is left as
+    it was (absent, or the previous dataset with ``overwrite``).
+
+    Args:
+        out_dir: destination folder; must not exist unless ``overwrite``.
+        mesh: the object (written as ``mesh.obj`` with UVs and normals).
+        views: one :class:`View` per image; an empty ``file`` is named ``images/NNN.exr|png``.
+        images: per view ``[H, W, 3]`` (or ``[H, W]``) linear file values — exposure·L as the photo
+            model made them (for "srgb", values in [0, 1] that are encoded and quantised on write).
+        encoding: "linear" (float EXR; ``half`` for 16-bit half floats) or "srgb" (PNG of ``bits``).
+        saturation: clipping level in file units; default: ``2^bits − 1`` for "srgb", None for "linear".
+        gt: optional ground truth: maps go to ``gt/<param>.exr`` (float32), regions to ``gt/regions.png``.
+        meta: free-form JSON-able metadata.
+        overwrite: replace an existing ``out_dir``.
+        validate: load the written folder before moving it in place (recommended).
+
+    Raises:
+        DatasetError: bad arguments, ``out_dir`` exists, or validation of the written folder failed.
+    """
+    out = Path(out_dir)
+    if encoding not in ENCODINGS:
+        raise DatasetError(f"write_dataset: encoding must be one of {sorted(ENCODINGS)}, got {encoding!r}")
+    if encoding == "srgb" and bits not in (8, 16):
+        raise DatasetError(f"write_dataset: bits must be 8 or 16, got {bits!r}")
+    if not isinstance(mesh, Mesh):
+        raise DatasetError(f"write_dataset: mesh must be a renderer.mesh.Mesh, got {type(mesh).__name__}")
+    if len(views) == 0 or len(views) != len(images):
+        raise DatasetError(f"write_dataset: need one image per view and at least one view, got {len(views)} views "
+                           f"and {len(images)} images")
+    if out.exists() and not overwrite:
+        raise DatasetError(f"{out}: already exists; choose another folder or pass overwrite=True")
+    parent = out.parent if str(out.parent) else Path(".")
+    if not parent.is_dir():
+        raise DatasetError(f"{out}: parent folder {parent} does not exist; create it first")
+    if encoding == "srgb" and saturation is None:
+        saturation = (1 << bits) - 1
+    ext = ".exr" if encoding == "linear" else ".png"
+
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=parent))
+    try:
+        (tmp / IMAGE_DIR).mkdir()
+        save_mesh(mesh, tmp / "mesh.obj")
+        entries = []
+        for i, (view, img) in enumerate(zip(views, images, strict=True)):
+            if not isinstance(view, View):
+                raise DatasetError(f"write_dataset: views[{i}] must be a View, got {type(view).__name__}")
+            rel = view.file or f"{IMAGE_DIR}/{i:03d}{ext}"
+            if Path(rel).suffix.lower() != ext:
+                raise DatasetError(f"write_dataset: views[{i}].file '{rel}' must end in {ext} for encoding "
+                                   f"'{encoding}'")
+            dest = _relative_file(tmp, rel, "write_dataset", f"views[{i}].file")
+            if not isinstance(img, Tensor) or img.dim() not in (2, 3):
+                raise DatasetError(f"write_dataset: images[{i}] must be a tensor [H, W, 3], got "
+                                   f"{getattr(img, 'shape', type(img).__name__)}")
+            if img.shape[0] != view.camera.height or img.shape[1] != view.camera.width:
+                raise DatasetError(f"write_dataset: images[{i}] is {img.shape[1]}×{img.shape[0]} but views[{i}].camera "
+                                   f"is {view.camera.width}×{view.camera.height}")
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                if encoding == "linear":
+                    write_exr(dest, img, half=half, allow_nonfinite=True)
+                else:
+                    write_png(dest, torch.nan_to_num(img.detach().cpu(), nan=0.0), bits=bits, transfer="srgb")
+            except ImageIOError as exc:
+                raise DatasetError(f"write_dataset: images[{i}]: {exc}") from None
+            entry = {"file": rel, "camera": view.camera.to_dict(),
+                     "lights": [light_to_dict(light) for light in view.lights], "exposure": float(view.exposure)}
+            if view.name:
+                entry["name"] = view.name
+            entries.append(entry)
+        doc = {"format": FORMAT, "version": VERSION, "mesh": "mesh.obj", "encoding": encoding}
+        if encoding == "srgb":
+            doc["bits"] = bits
+        doc["saturation"] = saturation
+        doc["images"] = entries
+        if gt is not None:
+            doc["gt"] = _write_gt(tmp, gt)
+        doc["meta"] = _jsonable(dict(meta or {}))
+        text = _dumps(_jsonable(doc))
+        (tmp / SCENE_FILE).write_text(text + "\n", encoding="utf-8")
+        _fix_permissions(tmp)
+        if validate:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DatasetWarning)
+                load_dataset(tmp)
+        if out.exists():
+            trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=parent))
+            os.replace(out, trash / "old")
+            try:
+                os.replace(tmp, out)
+            except BaseException:
+                os.replace(trash / "old", out)
+                raise
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    except DatasetError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        msg = str(exc).replace(str(tmp), str(out))
+        raise DatasetError(f"{msg} (nothing was written to {out})") from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _write_gt(tmp: Path, gt: GroundTruth) -> dict:
+    try:
+        spec = model_spec(gt.model)
+        model = model_from_spec(spec)
+    except ValueError as exc:
+        raise DatasetError(f"write_dataset: gt.model: {exc}") from None
+    names = set(model.param_names)
+    if set(gt.maps) != names:
+        raise DatasetError(f"write_dataset: gt.maps must hold exactly {sorted(names)} (model '{model.name}'), got "
+                           f"{sorted(gt.maps)}")
+    (tmp / GT_DIR).mkdir()
+    maps = {}
+    for p in model.params:
+        rel = f"{GT_DIR}/{p.name}.exr"
+        try:
+            p.check(gt.maps[p.name], where="write_dataset: gt")
+            write_exr(tmp / rel, gt.maps[p.name])
+        except (ValueError, TypeError) as exc:
+            raise DatasetError(f"write_dataset: gt.maps.{p.name}: {exc}") from None
+        maps[p.name] = rel
+    out = {"model": spec, "maps": maps}
+    if gt.regions is not None:
+        r = gt.regions
+        if not isinstance(r, Tensor) or r.dim() != 2 or r.is_floating_point() or r.min() < 0 or r.max() > 65535:
+            raise DatasetError("write_dataset: gt.regions must be an integer tensor [H, W] of ids in [0, 65535]")
+        rbits = 8 if int(r.max()) <= 255 else 16
+        write_png(tmp / GT_DIR / "regions.png", r.double() / ((1 << rbits) - 1), bits=rbits, transfer="linear")
+        out["regions"] = {"file": f"{GT_DIR}/regions.png", "names": {str(k): v for k, v in gt.region_names.items()}}
+    if gt.render:
+        out["render"] = dict(gt.render)
+    if gt.photo:
+        out["photo"] = dict(gt.photo)
+    return out
