@@ -18,8 +18,8 @@ which is ``1 / ∫_Ω (n·h)^s dω_l`` at normal viewing (v = n): the lobe norma
 cancelled by the Neumann factor (n·l / max(n·l, n·v) = 1 wherever n·l ≥ n·v). Evidence: the
 least-squares line through N(s) at the integer exponents s = 1 … 200 is
 0.03974358 s + 0.08568316, i.e. Gotanda's two constants to all 6-7 printed digits
-(tests/materials/test_blinn_phong.py reproduces it). The fit is 32 % low at s = 1, within 0.6 %
-for s ∈ [8, 4096] (table in docs/models-phong-layered.md). With F = 1 the directional albedo
+(tests/materials/test_blinn_phong.py reproduces it). The fit is 32 % low at s = 1, within 0.57 %
+for s ∈ [10, 4096] (peak +0.57 % at s ≈ 17; table in docs/models-phong-layered.md). With F = 1 the directional albedo
 never exceeds 1 for either normalisation (max 0.996 at s = 1000, 0.63 at s = 1): the lobe loses
 energy, it does not gain it.
 
