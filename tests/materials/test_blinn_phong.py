@@ -100,7 +100,7 @@ def test_normal_albedo_normalisation_closed_form():
     # K (n·h)^s has albedo 1 at v = n: check against the quadrature with f·cos = K (n·h)^s n·l.
     for s in (1.0, 30.0):
         k = blinn_phong_normal_albedo_normalization(torch.tensor(s, dtype=D64)).item()
-        a = directional_albedo(lambda g: k * g.nl, 1.0, s, nw=2000, nphi=8)
+        a = directional_albedo(lambda g, k=k: k * g.nl, 1.0, s, nw=2000, nphi=8)
         assert a == pytest.approx(1.0, rel=2e-4)
 
 
