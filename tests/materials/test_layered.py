@@ -1,0 +1,306 @@
+"""Gotanda 2012 dual layer (eq 2-9): the coat vanishes at η₁ = 1, goldens, absorption limits, eq 3 vs
+eq 2, eq 8, IBL, gradients and extreme inputs."""
+
+import math
+
+import pytest
+import torch
+from hypothesis import given
+from hypothesis import strategies as st
+
+import materials
+from materials.geometry import Angles
+from materials.layered import (
+    absorption_exact,
+    absorption_linear,
+    clamped_linear_absorption_mean,
+    refracted_cos,
+    relative_f0,
+    relative_ior,
+)
+from materials.roughness import R_MIN
+
+D64 = torch.float64
+PI = math.pi
+
+
+def _vec(cos, phi=0.0):
+    s = math.sqrt(max(0.0, 1.0 - cos * cos))
+    return torch.tensor([s * math.cos(phi), s * math.sin(phi), cos], dtype=D64)
+
+
+N = _vec(1.0)
+
+
+def _random(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    nl = 0.02 + 0.98 * torch.rand(n, generator=g, dtype=D64)
+    nv = 0.02 + 0.98 * torch.rand(n, generator=g, dtype=D64)
+    phi = 2 * PI * torch.rand(n, generator=g, dtype=D64)
+    lv = nl * nv + torch.sqrt(1 - nl**2) * torch.sqrt(1 - nv**2) * torch.cos(phi)
+    return Angles.from_cosines(nl, nv, lv)
+
+
+def _params(model, n, seed, **fixed):
+    gen = torch.Generator().manual_seed(seed)
+    p = {}
+    for sp in model.params:
+        lo, hi = {"ior": (1.1, 2.5), "coat_ior": (1.1, 2.0), "absorption": (0.0, 0.2)}.get(sp.name, (0.05, 0.95))
+        p[sp.name] = lo + (hi - lo) * torch.rand(n, sp.channels, dtype=D64, generator=gen)
+    for k, x in fixed.items():
+        p[k] = torch.full((n, model.spec(k).channels), float(x), dtype=D64)
+    return p
+
+
+@pytest.mark.parametrize("bottom", ["gotanda2010", "nielsen-phong", "nielsen-mixture", "lambert", "gotanda2012"])
+@pytest.mark.parametrize("absorption", ["linear", "exact"])
+def test_coat_vanishes_at_ior_one(bottom, absorption):
+    m = materials.get("gotanda2012-layered", bottom=bottom, absorption=absorption)
+    b = materials.get(bottom)
+    g = _random(300, 1)
+    p = _params(m, 300, 2, coat_ior=1.0, absorption=0.0)
+    assert torch.allclose(m.brdf(g, p), b.brdf(g, p), rtol=1e-12, atol=1e-15)
+    assert torch.allclose(m.cosine_brdf(g, p), b.cosine_brdf(g, p), rtol=1e-12, atol=1e-15)
+
+
+def test_constant_bottom_fresnel_uses_constant_bottom_and_vanishes_at_ior_one():
+    m = materials.get("gotanda2012-layered", bottom_fresnel="constant")
+    assert m.bottom_fresnel_constant
+    ref = materials.get("gotanda2010", fresnel="none")
+    g = _random(100, 3)
+    p = _params(m, 100, 4, coat_ior=1.0, absorption=0.0)
+    assert torch.allclose(m.brdf(g, p), ref.brdf(g, p), rtol=1e-12, atol=1e-15)
+    # a bottom without a fresnel option (lambert) falls back to its own form
+    assert not materials.get("gotanda2012-layered", bottom="lambert", bottom_fresnel="constant").bottom_fresnel_constant
+
+
+def test_golden_normal_incidence():
+    # l = v = n, η₁ = 1.5 (F(1.5, 1) = 0.04), coat r = 0.5 → s = 30, N = 1.2779912.
+    # Bottom gotanda2010 with f0 = 0.09 (√f0 = 0.3, n2 = 1.3/0.7): √f0_rel = (1.3 − 1.5·0.7)/(1.3 + 1.5·0.7)
+    # = 0.25/2.35. Bottom at l = v = n: albedo(1 − f0_rel)/π + N_b f0_rel with N_b = N(30) as well.
+    # T_in T_out = 0.96², linear absorption 1 − a(1 + 1) with a = 0.1 → 0.8; exact exp(−0.1·2) (no refraction at n).
+    m_lin = materials.get("gotanda2012-layered", absorption="linear")
+    m_exa = materials.get("gotanda2012-layered", absorption="exact")
+    p = {"albedo": torch.tensor([0.6], dtype=D64), "f0": torch.tensor([0.09], dtype=D64),
+         "roughness": torch.tensor([0.5], dtype=D64), "absorption": torch.tensor([0.1], dtype=D64),
+         "coat_ior": torch.tensor([1.5], dtype=D64), "coat_roughness": torch.tensor([0.5], dtype=D64)}
+    nrm = 0.0397436 * 30 + 0.0856832
+    f0r = (0.25 / 2.35) ** 2
+    bottom = 0.6 * (1 - f0r) / PI + nrm * f0r
+    lin = m_lin(N, N, N, **p).item()
+    exa = m_exa(N, N, N, **p).item()
+    assert lin == pytest.approx(0.04 * nrm + 0.96**2 * 0.8 * bottom, rel=1e-10)
+    assert exa == pytest.approx(0.04 * nrm + 0.96**2 * math.exp(-0.2) * bottom, rel=1e-10)
+
+
+def test_relative_f0_and_ior():
+    f0 = torch.tensor([0.0, 0.02, 0.04, 0.3, 0.9, 1.0], dtype=D64)
+    assert torch.allclose(relative_f0(f0, torch.tensor(1.0, dtype=D64)), f0, rtol=1e-12, atol=0)
+    assert relative_f0(torch.tensor(1.0, dtype=D64), torch.tensor(2.0, dtype=D64)).item() == pytest.approx(1.0)
+    # against the route through the index: n2 = ior_from_f0, f0_rel = ((n2 − n1)/(n2 + n1))²
+    n1 = 1.7
+    for x in (0.0, 0.02, 0.3, 0.9):
+        n2 = (1 + math.sqrt(x)) / (1 - math.sqrt(x))
+        assert relative_f0(torch.tensor(x, dtype=D64), torch.tensor(n1, dtype=D64)).item() == pytest.approx(
+            ((n2 - n1) / (n2 + n1)) ** 2, rel=1e-12)
+    assert relative_ior(torch.tensor(1.2), torch.tensor(1.5)).item() == pytest.approx(1.25)
+    assert relative_ior(torch.tensor(2.4), torch.tensor(1.5)).item() == pytest.approx(1.6)
+
+
+def test_eq3_agrees_with_eq2_to_first_order():
+    # At η₁ = 1 (no refraction) exp(−aL) − max(0, 1 − aL) = a²L²/2 + O(a³), L = 1/n·l + 1/n·v.
+    nl = torch.tensor([[0.3], [0.7], [1.0]], dtype=D64)
+    nv = torch.tensor([[0.5], [0.2], [1.0]], dtype=D64)
+    L = 1 / nl + 1 / nv
+    one = torch.ones(1, dtype=D64)
+    for a in (1e-2, 1e-3, 1e-4):
+        at = torch.full((3, 1), a, dtype=D64)
+        diff = absorption_exact(nl, nv, at, one) - absorption_linear(nl, nv, at)
+        assert torch.allclose(diff / a**2, L**2 / 2, rtol=3 * a * L.max().item())
+    # With η₁ > 1 the exact path is shorter (refracted): the first-order slopes differ by design —
+    # Gotanda's α' absorbs it. Slope ratio at n·l = n·v = 0.5, η₁ = 1.5:
+    h = 1e-6
+    half = torch.tensor([0.5], dtype=D64)
+    ratio = (1 - absorption_exact(half, half, torch.tensor([h], dtype=D64), torch.tensor([1.5], dtype=D64))) / (4 * h)
+    ct = math.sqrt(1 - 0.75 / 2.25)
+    assert ratio.item() == pytest.approx(0.5 / ct, rel=1e-5)
+
+
+@pytest.mark.parametrize("absorption", ["linear", "exact"])
+def test_huge_absorption_leaves_only_the_coat_with_finite_gradients(absorption):
+    m = materials.get("gotanda2012-layered", absorption=absorption)
+    g = _random(50, 5)
+    p = _params(m, 50, 6, absorption=1e3)
+    p = {k: x.requires_grad_() for k, x in p.items()}
+    out = m.brdf(g, p)
+    coat = m.coat_specular(g, p)
+    assert torch.allclose(out, coat.expand_as(out), rtol=1e-12, atol=1e-300)
+    out.sum().backward()
+    for k, x in p.items():
+        assert torch.isfinite(x.grad).all(), k
+    assert (p["albedo"].grad == 0).all()
+
+
+def test_linear_absorption_grazing_value_and_gradient():
+    nl = torch.tensor([[0.0], [1e-7], [1e-3], [0.5]], dtype=D64, requires_grad=True)
+    nv = torch.full((4, 1), 0.9, dtype=D64, requires_grad=True)
+    a = torch.full((4, 3), 1e-4, dtype=D64, requires_grad=True)
+    out = absorption_linear(nl, nv, a)
+    assert out[0].tolist() == [0.0] * 3 and out[1].tolist() == [0.0] * 3
+    assert out[3, 0].item() == pytest.approx(1 - 1e-4 * (2 + 1 / 0.9))
+    out.sum().backward()
+    assert torch.isfinite(nl.grad).all() and torch.isfinite(a.grad).all()
+
+
+def test_eq8_integral_and_clamped_mean():
+    # ∫ (1/cos θ_r + 1/cos θ_i) cos θ_i/π dω_i = 2 + 1/cos θ_r (midpoint rule in μ = cos θ_i; φ trivial)
+    n = 200000
+    mu = (torch.arange(n, dtype=D64) + 0.5) / n
+    for cr in (1.0, 0.5, 0.1):
+        val = ((1 / cr + 1 / mu) * mu / PI).mean().item() * 2 * PI
+        assert val == pytest.approx(2 + 1 / cr, rel=1e-9)
+    # the clamped mean used to judge eq 9: c − 2a + a²/c
+    for a, cr in ((0.01, 0.8), (0.05, 0.5), (0.2, 0.9), (0.4, 0.5)):
+        num = (torch.relu(1 - a * (1 / mu + 1 / cr)) * 2 * mu).mean().item()
+        closed = clamped_linear_absorption_mean(torch.tensor(a, dtype=D64), torch.tensor(cr, dtype=D64)).item()
+        assert closed == pytest.approx(num, abs=1e-6)
+        eq9 = max(0.0, 1 - a * (2 + 1 / cr))
+        if closed > 0:
+            c = 1 - a / cr
+            assert closed - eq9 == pytest.approx(a * a / c, abs=1e-9)
+
+
+def test_refracted_cos():
+    c = refracted_cos(torch.tensor([[0.0], [0.6], [1.0]], dtype=D64), torch.tensor(1.5, dtype=D64))
+    expect = [math.sqrt(1 - (1 - x * x) / 2.25) for x in (0.0, 0.6, 1.0)]
+    assert c.squeeze(-1).tolist() == pytest.approx(expect, rel=1e-12)
+
+
+def _sky(l0=1.0):
+    coeffs = torch.zeros(9, 3, dtype=D64)
+    coeffs[0] = 2 * math.sqrt(PI) * l0
+    return materials.SHLight(coeffs.float())
+
+
+def test_environment_coat_vanishes_and_eq7_eq9_factors():
+    env = _sky()
+    n = N.unsqueeze(0)
+    v = _vec(1.0).unsqueeze(0)
+    b = materials.get("gotanda2010")
+    m = materials.get("gotanda2012-layered")
+    p = {"albedo": torch.tensor([[0.5, 0.4, 0.3]], dtype=D64), "f0": torch.tensor([[0.04, 0.04, 0.04]], dtype=D64),
+         "roughness": torch.tensor([[0.4]], dtype=D64), "absorption": torch.tensor([[0.0, 0.0, 0.0]], dtype=D64),
+         "coat_ior": torch.tensor([[1.0]], dtype=D64), "coat_roughness": torch.tensor([[0.2]], dtype=D64)}
+    assert torch.allclose(m.environment(env, n, v, p), b.environment(env, n, v, p), rtol=1e-6)
+    # absorption a = 0.1, n·v = 1, η₁ = 1: specular × (1 − 2a) (eq 7), diffuse × (1 − 3a) (eq 9)
+    p["absorption"] = torch.full((1, 3), 0.1, dtype=D64)
+    spec, diff = b.environment_split(env, n, v, p)
+    expect = 0.8 * spec + 0.7 * diff
+    assert torch.allclose(m.environment(env, n, v, p), expect, rtol=1e-6)
+    # HemisphereLight and the exact absorption path run and stay finite and below the no-absorption value
+    hemi = materials.HemisphereLight(torch.tensor([1.0, 1.0, 1.0]), torch.tensor([0.2, 0.2, 0.2]),
+                                     torch.tensor([0.0, 0.0, 1.0]))
+    me = materials.get("gotanda2012-layered", absorption="exact")
+    p["coat_ior"] = torch.tensor([[1.5]], dtype=D64)
+    v2 = _vec(0.3, 1.0).unsqueeze(0)
+    absorbed = me.environment(hemi, n, v2, p)
+    p0 = dict(p, absorption=torch.zeros(1, 3, dtype=D64))
+    clear = me.environment(hemi, n, v2, p0)
+    assert torch.isfinite(absorbed).all() and (absorbed < clear).all()
+
+
+def test_environment_fallback_for_bottom_without_split():
+    env = _sky()
+    m = materials.get("gotanda2012-layered", bottom="lambert")
+    n, v = N.unsqueeze(0), _vec(1.0).unsqueeze(0)
+    p = {"albedo": torch.tensor([[0.5, 0.5, 0.5]], dtype=D64), "absorption": torch.full((1, 3), 0.1, dtype=D64),
+         "coat_ior": torch.tensor([[1.0]], dtype=D64), "coat_roughness": torch.tensor([[0.2]], dtype=D64)}
+    assert torch.allclose(m.environment(env, n, v, p), torch.full((1, 3), 0.5 * 0.7, dtype=D64), rtol=1e-6)
+
+
+@pytest.mark.parametrize("absorption,bottom_fresnel,coat", [("linear", "exact", "blinn-phong"),
+                                                            ("exact", "constant", "blinn-phong"),
+                                                            ("exact", "exact", "ggx")])
+def test_gradcheck(absorption, bottom_fresnel, coat):
+    m = materials.get("gotanda2012-layered", absorption=absorption, bottom_fresnel=bottom_fresnel, coat=coat)
+    g = _random(4, 7)
+    p = _params(m, 4, 8)
+    keys = list(p)
+    vals = [p[k].requires_grad_() for k in keys]
+    assert torch.autograd.gradcheck(lambda *xs: m.brdf(g, dict(zip(keys, xs, strict=True))), vals)
+
+
+def test_gradcheck_environment():
+    m = materials.get("gotanda2012-layered", absorption="exact")
+    env = _sky()
+    n = N.expand(3, 3)
+    v = torch.stack([_vec(0.9, 0.1), _vec(0.5, 1.0), _vec(0.2, 2.0)])
+    p = _params(m, 3, 9)
+    keys = list(p)
+    vals = [p[k].requires_grad_() for k in keys]
+    assert torch.autograd.gradcheck(lambda *xs: m.environment(env, n, v, dict(zip(keys, xs, strict=True))), vals)
+
+
+def test_ggx_coat_vanishes_at_ior_one():
+    m = materials.get("gotanda2012-layered", coat="ggx")
+    g = _random(50, 10)
+    p = _params(m, 50, 11, coat_ior=1.0)
+    assert (m.coat_specular(g, p) == 0).all()
+
+
+def test_bad_options():
+    with pytest.raises(ValueError, match="absorption"):
+        materials.get("gotanda2012-layered", absorption="beer")
+    with pytest.raises(ValueError, match="bottom_fresnel"):
+        materials.get("gotanda2012-layered", bottom_fresnel="x")
+    with pytest.raises(ValueError, match="unknown model"):
+        materials.get("gotanda2012-layered", bottom="nope")
+    with pytest.raises(ValueError, match="coat over a coat"):
+        materials.get("gotanda2012-layered", bottom="gotanda2012-layered")
+
+
+def test_directional_albedo_white_bottom_below_one():
+    """Energy: albedo 1, f0 = 0.04 bottom under a clear η₁ = 1.5 coat, measured by quadrature over l."""
+    m = materials.get("gotanda2012-layered")
+    nth, nphi = 400, 128
+    mu = (torch.arange(nth, dtype=D64) + 0.5) / nth
+    phi = (torch.arange(nphi, dtype=D64) + 0.5) / nphi * 2 * PI
+    for nv in (1.0, 0.5, 0.1):
+        nl = mu[:, None].expand(nth, nphi)
+        lv = nl * nv + torch.sqrt(1 - nl**2) * math.sqrt(1 - nv**2) * torch.cos(phi)[None, :]
+        g = Angles.from_cosines(nl, torch.full_like(nl, nv), lv)
+        p = {"albedo": torch.ones(1, 3, dtype=D64), "f0": torch.full((1, 3), 0.04, dtype=D64),
+             "roughness": torch.tensor([[0.6]], dtype=D64), "absorption": torch.zeros(1, 3, dtype=D64),
+             "coat_ior": torch.tensor([[1.5]], dtype=D64), "coat_roughness": torch.tensor([[0.6]], dtype=D64)}
+        alb = m.cosine_brdf(g, p).mean(dim=(0, 1)) * 2 * PI
+        assert (alb <= 1.0).all(), (nv, alb)
+
+
+_COS = st.one_of(st.sampled_from([0.0, 1e-7, -1e-7, -1e-3, 1e-3, 0.5, 1.0]), st.floats(-0.2, 1.0))
+_R = st.one_of(st.sampled_from([0.0, R_MIN, 0.5, 1.0]), st.floats(0.0, 1.0))
+
+
+@given(nl=_COS, nv=_COS, phi=st.floats(0, 2 * PI), anti=st.booleans(), r=_R, rc=_R,
+       f0=st.one_of(st.sampled_from([0.0, 1.0]), st.floats(0.0, 1.0)),
+       eta=st.one_of(st.sampled_from([1.0, 3.0]), st.floats(1.0, 3.0)),
+       a=st.one_of(st.sampled_from([0.0, 1e3]), st.floats(0.0, 1e3)),
+       absorption=st.sampled_from(["linear", "exact"]), bottom_fresnel=st.sampled_from(["exact", "constant"]))
+def test_extremes_finite_and_float32_matches_float64(nl, nv, phi, anti, r, rc, f0, eta, a, absorption, bottom_fresnel):
+    m = materials.get("gotanda2012-layered", absorption=absorption, bottom_fresnel=bottom_fresnel)
+    l = _vec(nl).clone().requires_grad_()
+    v = (-l.detach() if anti else _vec(nv, phi)).clone().requires_grad_()
+    p = {"albedo": torch.tensor([0.5, 0.1, 1.0], dtype=D64), "f0": torch.full((3,), f0, dtype=D64),
+         "roughness": torch.tensor([r], dtype=D64), "absorption": torch.tensor([a, 0.0, 1.0], dtype=D64),
+         "coat_ior": torch.tensor([eta], dtype=D64), "coat_roughness": torch.tensor([rc], dtype=D64)}
+    p = {k: x.requires_grad_() for k, x in p.items()}
+    g = Angles.from_vectors(N, l, v)
+    out = m.brdf(g, p) + m.cosine_brdf(g, p)
+    assert torch.isfinite(out).all()
+    out.sum().backward()
+    for x in (l, v, *p.values()):
+        assert torch.isfinite(x.grad).all()
+    g32 = g.to(torch.float32)
+    p32 = {k: x.detach().float() for k, x in p.items()}
+    a32 = m.cosine_brdf(g32, p32).double()
+    a64 = m.cosine_brdf(g32.to(D64), {k: x.double() for k, x in p32.items()})
+    assert torch.allclose(a32, a64, rtol=5e-4, atol=1e-6 * (1 + a64.abs().max().item()))
