@@ -279,28 +279,43 @@ class Dataset:
 # checks
 
 
-def camera_sees_mesh(camera: Camera, vertices: Tensor) -> tuple[bool, str]:
+def camera_sees_mesh(camera: Camera, vertices: Tensor, faces: Tensor | None = None) -> tuple[bool, str]:
     """Cheap test that ``camera`` sees some of the mesh, without a G-buffer.
 
-    Projects every vertex; the camera sees the mesh if some vertex is in front (depth > 0) and
-    either the 2D bounding box of the projected in-front vertices overlaps the image
-    ([−½, W − ½] × [−½, H − ½]) or the mesh straddles the camera plane (vertices on both sides,
-    where a bounding box of projections says nothing). Returns ``(sees, reason_if_not)``.
+    The mesh is clipped at a near plane just in front of the camera (depth ε = 1e-9 × the largest
+    coordinate): the vertices in front plus, with ``faces``, the points where edges cross the
+    plane are the corners of the clipped mesh, so the bounding box of their projections is the
+    bounding box of the visible part's projection. The camera sees the mesh iff that box overlaps
+    the image ([−½, W − ½] × [−½, H − ½]). Without ``faces`` a mesh that straddles the camera plane
+    is accepted (conservative). Occlusion is ignored. Returns ``(sees, reason_if_not)``.
     """
     v = vertices.detach().to("cpu", torch.float64)
     cam = camera.to(torch.float64)
-    pix, depth = cam.project(v)
-    front = depth > 1e-9 * max(1.0, float(v.abs().max()))
+    xc = cam.world_to_camera(v)
+    eps = 1e-9 * max(1.0, float(v.abs().max()), float(cam.t.abs().max()))
+    front = xc[:, 2] > eps
     if not bool(front.any()):
         return False, "the whole mesh is behind the camera (every vertex has depth ≤ 0)"
+    pts = xc[front]
     if not bool(front.all()):
-        return True, ""
-    p = pix[front]
-    lo, hi = p.min(0).values, p.max(0).values
+        if faces is None:
+            return True, ""
+        f = faces.detach().cpu().long()
+        a = torch.cat([f[:, 0], f[:, 1], f[:, 2]])
+        b = torch.cat([f[:, 1], f[:, 2], f[:, 0]])
+        cross = front[a] != front[b]
+        za, zb = xc[a[cross], 2], xc[b[cross], 2]
+        s = ((eps - za) / (zb - za))[:, None]
+        pts = torch.cat([pts, xc[a[cross]] + s * (xc[b[cross]] - xc[a[cross]])])
+    K = cam.K.double()
+    z = pts[:, 2].clamp_min(eps)
+    x = K[0, 0] * pts[:, 0] / z + K[0, 1] * pts[:, 1] / z + K[0, 2]
+    y = K[1, 1] * pts[:, 1] / z + K[1, 2]
     W, H = camera.width, camera.height
-    if hi[0] < -0.5 or lo[0] > W - 0.5 or hi[1] < -0.5 or lo[1] > H - 0.5:
+    lo_x, hi_x, lo_y, hi_y = float(x.min()), float(x.max()), float(y.min()), float(y.max())
+    if hi_x < -0.5 or lo_x > W - 0.5 or hi_y < -0.5 or lo_y > H - 0.5:
         return False, (
-            f"the mesh projects to x ∈ [{lo[0]:.1f}, {hi[0]:.1f}], y ∈ [{lo[1]:.1f}, {hi[1]:.1f}] px, "
+            f"the mesh projects to x ∈ [{lo_x:.4g}, {hi_x:.4g}], y ∈ [{lo_y:.4g}, {hi_y:.4g}] px, "
             f"outside the {W}×{H} image"
         )
     return True, ""
@@ -508,7 +523,7 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
         name = e.get("name", "")
         if not isinstance(name, str):
             raise _err(scene, f"images[{i}].name", f"must be a string, got {name!r}")
-        sees, why = camera_sees_mesh(cam, mesh.vertices)
+        sees, why = camera_sees_mesh(cam, mesh.vertices, mesh.faces)
         if not sees:
             raise _err(scene, f"images[{i}].camera", f"the camera does not see the mesh: {why}",
                        "check R and t (world-to-camera, OpenCV: x right, y down, z forward) and the mesh units")

@@ -129,7 +129,7 @@ class SyntheticConfig:
     n_views: int = 16
     image_size: int | tuple[int, int] = 256
     texture_size: int | tuple[int, int] = 256
-    model: str | dict = "lambert+microfacet"
+    model: str | dict = "ggx-lambert"
     model_options: dict = field(default_factory=dict)
     camera_rig: str = "orbit"
     elevations: tuple[float, ...] = (15.0, 50.0)
@@ -563,19 +563,19 @@ def make_synthetic(config: SyntheticConfig, out_dir, overwrite: bool = False) ->
 
 def default_scene(**overrides) -> SyntheticConfig:
     """The README demo's scene: a UV sphere, 16 views of 256×256 on two orbit rings, 256² maps,
-    Lambert + GGX microfacet (Smith height-correlated G, Schlick F), 2 flash point lights per view,
+    ``ggx-lambert`` (Lambert + GGX / Smith height-correlated / Schlick, materials.catalog), 2 flash point
+    lights per view,
     noise-free linear EXR. ``overrides`` replace any :class:`SyntheticConfig` field."""
     cfg = SyntheticConfig(
         mesh="uv_sphere", n_views=16, image_size=256, texture_size=256,
-        model={"sum": [{"name": "lambert"}, {"name": "microfacet",
-                                             "options": {"D": "ggx", "G": "smith-correlated", "F": "schlick"}}]},
+        model="ggx-lambert",
         camera_rig="orbit", elevations=(15.0, 50.0), light_rig="flash", n_lights=2, photo=PhotoModel(),
         supersample=1, sampling="bilinear", seed=0,
     )
     return replace(cfg, **overrides) if overrides else cfg
 
 
-def small_scene(model: str | dict = "lambert+microfacet", *, image_size: int = 96, texture_size: int = 64,
+def small_scene(model: str | dict = "ggx-lambert", *, image_size: int = 96, texture_size: int = 64,
                 n_views: int = 4, mesh: str = "uv_sphere", **overrides) -> SyntheticConfig:
     """A cheap regression scene (well under 2 s to make): a coarse mesh, a few views of 64–128 px,
     64² maps, 2 flash lights per view, noise-free linear EXR. ``overrides`` replace any field."""
