@@ -389,7 +389,13 @@ def sh_dc_scale(shininess: Tensor, nv: Tensor, form: str = "eq27") -> Tensor:
         SH'_DC = (f(s) + g(s)(1 − N·E)) SH_DC                                           (eq 28)
         f(s) = 1 − 1/(2 + 0.65 s),  g(s) = 1/(2.22222 + 0.1 s)
 
-    It fits eq 26, the directional albedo ∫ f_r (n·l) dω_l of eq 25 at ρ = 1 (errors in the docs).
+    Eq 26 is the directional albedo ∫ f_r (n·l) dω_l of eq 25 at ρ = 1. Measured against it (our
+    quadrature of our eq 25 lobe): both forms are exact at N·E = 1 (= f(s), where eq 25 is
+    A · Lambert) but overestimate toward grazing views, by up to 0.71 g(s) at N·E = 0 (0.29 at σ = 1):
+    eq 26 of eq 25 is f + g (P − N), P = 0.5 and N = 0.21 at N·E = 0 for the positive and negative
+    cosri parts. Eq 27's shape ½(1 + 2 arccos(x)/π − x) matches 2P(x) to 0.021 (eq 28's 1 − x to
+    0.11): the printed fit tracks twice the positive part alone — as if the integrand had no
+    backward term and twice the weight. We implement eq 27/28 as printed; see docs/models-diffuse.md.
 
     Args:
         shininess: s ≥ 0 ``[..., 1]``; nv: N·E ``[..., 1]`` (clamped to [0, 1]).
