@@ -177,7 +177,7 @@ def microfacet_diffuse_numerical(g: Angles, albedo: Tensor, alpha: Tensor, f0: T
     f_r = ρ/π · 21/20 (1 − f0) · G2(l, e)/((n·l)(n·e)) · I(l, e; α), with I from
     :func:`facet_integral` (GGX-warped tensor quadrature, ``nodes`` = (n_ψ, n_φ), default 48 × 96 =
     4608 nodes). Convergence (docs/models-diffuse.md): max relative error vs 192 × 384 nodes
-    ≲ 1e-3 over the test grid; the integrand has kinks where m·l = 0 or m·e = 0, so the error falls
+    2.0e-3 (mean 4e-6) over a 1470-point grid; the integrand has kinks where m·l = 0 or m·e = 0, so the error falls
     like N^-2, not exponentially.
 
     Args:
