@@ -10,8 +10,10 @@ OpenGL / Blender camera frames look along −z with y up (x right): the OpenGL c
 ``diag(1, −1, −1)`` times the OpenCV one. Blender's camera object uses the same frame as OpenGL;
 its ``matrix_world`` is camera-to-world.
 
-Projection and the OpenCV↔OpenGL pose flips use kornia (``kornia.geometry.camera.project_points``,
-``unproject_points``, ``kornia.geometry.conversions.camtoworld_vision_to_graphics_Rt``).
+The OpenCV↔OpenGL/Blender pose flips use kornia (``kornia.geometry.conversions.camtoworld_vision_to_graphics_Rt``
+and its inverse). Projection does *not* use ``kornia.geometry.camera.project_points`` /
+``unproject_points``: in kornia 0.9 they read only fx, fy, cx, cy and silently ignore the skew
+K[0, 1] (caught by ``tests/renderer/test_camera.py``); the one-line ``K x / z`` is used instead.
 """
 
 from __future__ import annotations
@@ -21,7 +23,6 @@ import numbers
 from collections.abc import Sequence
 
 import torch
-from kornia.geometry.camera import project_points, unproject_points
 from kornia.geometry.conversions import camtoworld_graphics_to_vision_Rt, camtoworld_vision_to_graphics_Rt
 from torch import Tensor
 
@@ -121,7 +122,9 @@ class Camera:
         if not isinstance(points, Tensor) or points.dim() != 2 or points.shape[1] != 3:
             raise CameraError(f"Camera.project: points must be a tensor [N, 3], got {getattr(points, 'shape', points)}")
         xc = self.world_to_camera(points)
-        pix = project_points(xc, self.K.to(points).expand(len(points), 3, 3)) if len(points) else points[:, :2]
+        z = xc[:, 2:]
+        safe = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
+        pix = (xc @ self.K.to(points).T)[:, :2] / safe
         return pix, xc[:, 2]
 
     def pixel_grid(self, supersample: int = 1, dtype=None) -> Tensor:
@@ -150,8 +153,7 @@ class Camera:
         """
         dtype = dtype or self.K.dtype
         pix = self.pixel_grid(supersample, dtype)
-        K = self.K.to(dtype)
-        cam = unproject_points(pix, torch.ones(1, dtype=dtype).expand(len(pix), 1), K[None])
+        cam = torch.cat([pix, torch.ones_like(pix[:, :1])], -1) @ torch.linalg.inv(self.K.to(dtype)).T
         d = torch.nn.functional.normalize(cam @ self.R.to(dtype), dim=-1)  # Rᵀ x as row vectors
         return self.center.to(dtype).expand_as(d), d
 

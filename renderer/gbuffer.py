@@ -34,7 +34,7 @@ from torch import Tensor
 from .camera import Camera, _check_supersample
 from .mesh import Mesh
 
-__all__ = ["GBuffer", "render_gbuffer", "intersect_faces"]
+__all__ = ["GBuffer", "render_gbuffer", "intersect", "intersect_faces"]
 
 
 @dataclass
@@ -153,6 +153,45 @@ def intersect_faces(mesh: Mesh, origins: np.ndarray, directions: np.ndarray, fac
     return t, beta, gamma
 
 
+def intersect(mesh: Mesh, origins: np.ndarray, directions: np.ndarray) -> dict[str, np.ndarray]:
+    """First hits of rays with ``mesh`` (float64 numpy), the G-buffer's core.
+
+    Args:
+        origins: ``[M, 3]`` or ``[1, 3]`` (shared origin). directions: ``[M, 3]`` unit.
+
+    Returns:
+        dict of arrays over the hit rays only: ``ray`` (index into the M rays), ``face``, ``t``
+        (distance), ``bary [K, 3]``, ``position``, ``normal`` (interpolated, unit), ``geo_normal``,
+        ``uv``, ``view`` (= −direction), ``backface``; normals flipped on back faces as described in the
+        module docstring.
+    """
+    directions = np.asarray(directions, dtype=np.float64)
+    origins = np.broadcast_to(np.asarray(origins, dtype=np.float64), directions.shape)
+    index_tri = mesh.intersector.intersects_first(ray_origins=origins, ray_directions=directions)
+    ray = np.nonzero(index_tri >= 0)[0]
+    face = index_tri[ray].astype(np.int64)
+    d = directions[ray]
+    o = origins[ray]
+    t, beta, gamma = intersect_faces(mesh, o, d, face)
+    # embree is float32: a hit near an edge may come out a hair outside the face; clamp and renormalise
+    b = np.stack([1.0 - beta - gamma, beta, gamma], 1).clip(0.0, None)
+    b /= b.sum(1, keepdims=True).clip(1e-300, None)
+    t = np.where(np.isfinite(t), t, 0.0)
+    pos = o + t[:, None] * d
+    F = mesh.tm.faces[face]  # [K,3]
+    n = np.einsum("nk,nkc->nc", b, mesh._normals64()[F])
+    n /= np.linalg.norm(n, axis=1, keepdims=True).clip(1e-300, None)
+    uv = np.einsum("nk,nkc->nc", b, mesh._uvs64()[F])
+    tri = mesh.tm.vertices[F]
+    gn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    gn /= np.linalg.norm(gn, axis=1, keepdims=True).clip(1e-300, None)
+    view = -d
+    back = np.einsum("ij,ij->i", gn, view) < 0
+    sign = np.where(back, -1.0, 1.0)[:, None]
+    return {"ray": ray, "face": face, "t": t, "bary": b, "position": pos, "normal": n * sign,
+            "geo_normal": gn * sign, "uv": uv, "view": view, "backface": back}
+
+
 def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1) -> GBuffer:
     """Ray-cast the G-buffer of ``mesh`` seen by ``camera`` (see module docstring).
 
@@ -170,43 +209,21 @@ def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1) -> GBuffer:
         raise TypeError(f"render_gbuffer: camera must be a renderer.camera.Camera, got {type(camera).__name__}")
     k = _check_supersample(supersample)
     origins_t, dirs_t = camera.rays(k, dtype=torch.float64)
-    dirs = dirs_t.numpy()
-    origin = origins_t[0].numpy()
-    index_tri = mesh.intersector.intersects_first(ray_origins=np.broadcast_to(origin, dirs.shape), ray_directions=dirs)
-    ray = np.nonzero(index_tri >= 0)[0]
-    face = index_tri[ray]
-    d = dirs[ray]
-    o = np.broadcast_to(origin, d.shape)
-    t, beta, gamma = intersect_faces(mesh, o, d, face)
-    # embree is float32: a hit near an edge may come out a hair outside the face; clamp and renormalise
-    b = np.stack([1.0 - beta - gamma, beta, gamma], 1).clip(0.0, None)
-    b /= b.sum(1, keepdims=True)
-    t = np.where(np.isfinite(t), t, 0.0)
-    pos = o + t[:, None] * d
-
+    hit = intersect(mesh, origins_t[:1].numpy(), dirs_t.numpy())
+    ray = hit["ray"]
     dt = torch.get_default_dtype()
-    F = mesh.tm.faces[face]  # [N,3]
-    n = np.einsum("nk,nkc->nc", b, mesh._normals64()[F])
-    n /= np.linalg.norm(n, axis=1, keepdims=True).clip(1e-300, None)
-    uv = np.einsum("nk,nkc->nc", b, mesh._uvs64()[F])
-    tri = mesh.tm.vertices[F]
-    gn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    gn /= np.linalg.norm(gn, axis=1, keepdims=True).clip(1e-300, None)
-    view = -d
-    back = np.einsum("ij,ij->i", gn, view) < 0
-    sign = np.where(back, -1.0, 1.0)[:, None]
     f32 = lambda x: torch.from_numpy(np.ascontiguousarray(x)).to(dt)
     return GBuffer(
         pixel=torch.from_numpy((ray // (k * k)).astype(np.int64)),
         weight=torch.full((len(ray),), 1.0 / (k * k), dtype=dt),
-        position=f32(pos),
-        normal=f32(n * sign),
-        geo_normal=f32(gn * sign),
-        uv=f32(uv),
-        face=torch.from_numpy(face.astype(np.int64)),
-        view=f32(view),
-        depth=f32(t),
-        backface=torch.from_numpy(back),
+        position=f32(hit["position"]),
+        normal=f32(hit["normal"]),
+        geo_normal=f32(hit["geo_normal"]),
+        uv=f32(hit["uv"]),
+        face=torch.from_numpy(hit["face"]),
+        view=f32(hit["view"]),
+        depth=f32(hit["t"]),
+        backface=torch.from_numpy(hit["backface"]),
         height=camera.height,
         width=camera.width,
         supersample=k,

@@ -125,6 +125,8 @@ class Mesh:
             if length is not None and np.all(length > 0):
                 n = n / length
         dt = torch.get_default_dtype()
+        # the ray caster sees exactly the (float32-rounded) vertices the shading code sees
+        v = torch.as_tensor(v, dtype=dt).double().numpy()
         tm = None
         if f.ndim == 2 and len(f) and v.ndim == 2:
             tm = trimesh.Trimesh(vertices=v, faces=f, process=False, validate=False)

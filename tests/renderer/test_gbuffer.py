@@ -1,0 +1,115 @@
+"""Ray-cast G-buffers: geometry against projection, analytic sphere, supersampling, empty views."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from renderer.camera import look_at
+from renderer.gbuffer import intersect, render_gbuffer
+from renderer.mesh import nonconvex, plane, uv_sphere
+
+
+def test_projected_vertices_are_hit_positions():
+    """Cast rays through the projections of visible vertices: the hits are those vertices."""
+    m = nonconvex(segments=32, detail=8)
+    cam = look_at((2.5, -2.0, 2.0), (0.0, 0.0, 0.3), fov_y_deg=45, width=200, height=160)
+    V = m.vertices.double()
+    pix, depth = cam.project(V.float())
+    inside = (depth > 0) & (pix[:, 0] > 0) & (pix[:, 0] < 199) & (pix[:, 1] > 0) & (pix[:, 1] < 159)
+    idx = torch.nonzero(inside).squeeze(-1)
+    c = cam.center.double().numpy()
+    d = V[idx].numpy() - c
+    dist = np.linalg.norm(d, axis=1)
+    d /= dist[:, None]
+    hit = intersect(m, c[None], d)
+    first = np.full(len(idx), np.inf)
+    first[hit["ray"]] = hit["t"]
+    # a vertex is visible when the first hit along its ray is the vertex itself
+    visible = np.abs(first - dist) < 1e-6 * m.scale
+    assert visible.sum() > 200 and (~visible).sum() > 200  # both visible and hidden vertices (self-occlusion)
+    pos = np.full((len(idx), 3), np.nan)
+    pos[hit["ray"]] = hit["position"]
+    assert np.abs(pos[visible] - V[idx][visible].numpy()).max() < 1e-6
+    # hidden vertices are behind something: the first hit is strictly closer. A ray aimed exactly at a
+    # vertex on the silhouette may slip past the (float32, not watertight) embree triangles: allow a few
+    # (a miss, or a hit beyond the vertex); those are silhouette vertices, a few percent
+    slipped = first > dist + 1e-6 * m.scale
+    assert slipped.mean() < 0.03
+    assert (first[~visible & ~slipped] < dist[~visible & ~slipped]).all()
+
+
+def test_gbuffer_positions_project_to_their_pixels():
+    m = nonconvex(segments=32, detail=8)
+    cam = look_at((0.0, -3.0, 2.0), (0.0, 0.0, 0.3), fov_y_deg=40, width=64, height=48)
+    g = render_gbuffer(m, cam)
+    pix, depth = cam.project(g.position)
+    x, y = (g.pixel % 64).float(), (g.pixel // 64).float()
+    assert (pix[:, 0] - x).abs().max() < 1e-3 and (pix[:, 1] - y).abs().max() < 1e-3
+    assert torch.allclose(g.depth, (g.position - cam.center).norm(dim=-1), rtol=1e-5)
+    assert torch.allclose(g.view, torch.nn.functional.normalize(cam.center - g.position, dim=-1), atol=1e-4)
+    assert torch.allclose(g.normal.norm(dim=-1), torch.ones(len(g)), atol=1e-5)
+    assert ((g.geo_normal * g.view).sum(-1) >= 0).all()
+    assert not g.backface.any()  # a closed, outward mesh seen from outside
+    assert g.uv.min() >= 0 and g.uv.max() <= 1
+
+
+def test_sphere_against_analytic_intersection():
+    r = 1.0
+    m = uv_sphere(r, segments=128, rings=64)
+    cam = look_at((0.3, -4.0, 1.0), (0.0, 0.0, 0.0), fov_y_deg=35, width=48, height=48)
+    g = render_gbuffer(m, cam)
+    o, d = cam.rays(1, dtype=torch.float64)
+    # analytic ray/sphere: |o + t d|² = r²
+    b = (o * d).sum(-1)
+    disc = b * b - ((o * o).sum(-1) - r * r)
+    hit = disc > 0
+    # coverage agrees with the analytic disc except at the rim (polygonal silhouette)
+    assert abs(hit.sum().item() - len(g)) <= 0.03 * hit.sum().item()
+    t = -b[g.pixel] - torch.sqrt(disc[g.pixel].clamp_min(0))
+    p = o[g.pixel] + t[:, None] * d[g.pixel]
+    inner = disc[g.pixel] > 0.05  # away from the silhouette
+    err = (g.position.double() - p).norm(dim=-1)[inner]
+    chord = r * (1 - math.cos(math.pi / 64))  # max distance between a sphere and its tessellation ≈ 1.2e-3
+    assert err.max() < 2 * chord
+    ang = (g.normal.double()[inner] * (p[inner] / r)).sum(-1)
+    assert ang.min() > math.cos(math.radians(0.5))
+    # uv: u = longitude / 2π, v = (latitude + 90°)/180°
+    lon = torch.atan2(p[inner, 1], p[inner, 0]) % (2 * math.pi)
+    lat = torch.asin((p[inner, 2] / r).clamp(-1, 1))
+    du = (g.uv.double()[inner, 0] - lon / (2 * math.pi) + 0.5) % 1.0 - 0.5
+    assert du.abs().max() < 2e-3
+    assert (g.uv.double()[inner, 1] - (lat / math.pi + 0.5)).abs().max() < 2e-3
+
+
+def test_supersampling_and_to_image():
+    m = uv_sphere(1.0, 32, 16)
+    cam = look_at((0.0, -4.0, 0.0), fov_y_deg=40, width=32, height=32)
+    g1, g3 = render_gbuffer(m, cam, 1), render_gbuffer(m, cam, 3)
+    assert torch.allclose(g3.weight, torch.full((len(g3),), 1 / 9))
+    assert g3.supersample == 3
+    assert abs(g1.coverage - g3.coverage) < 0.02 and 0.1 < g3.coverage < 0.5
+    w = g3.pixel_weight()
+    assert torch.allclose(g3.to_image(torch.ones(len(g3))), w)
+    assert w.max() <= 1 + 1e-6 and ((w > 0) & (w < 1)).any()  # fractional edge pixels
+    img = g3.to_image(torch.ones(len(g3), 3), background=torch.tensor([0.0, 0.5, 1.0]))
+    # background fills the uncovered fraction of each pixel
+    assert torch.allclose(img[..., 2], torch.ones(32, 32)) and torch.allclose(img[..., 1], 0.5 + 0.5 * w)
+    with pytest.raises(ValueError, match="samples"):
+        g3.to_image(torch.ones(len(g3) + 1, 3))
+
+
+def test_empty_view_and_backfaces():
+    m = plane(2.0)
+    away = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 6.0), up=(0.0, 1.0, 0.0), width=16, height=16)
+    g = render_gbuffer(m, away)
+    assert len(g) == 0 and g.coverage == 0.0 and g.position.shape == (0, 3)
+    assert torch.equal(g.to_image(torch.zeros(0, 3)), torch.zeros(16, 16, 3))
+    below = look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), width=16, height=16)
+    g = render_gbuffer(m, below)
+    assert len(g) > 0 and g.backface.all()
+    assert torch.allclose(g.geo_normal, torch.tensor([0.0, 0.0, -1.0]).expand(len(g), 3))
+    assert torch.allclose(g.normal, torch.tensor([0.0, 0.0, -1.0]).expand(len(g), 3))
+    with pytest.raises(TypeError, match="Camera"):
+        render_gbuffer(m, "camera")
