@@ -182,6 +182,7 @@ class SyntheticConfig:
         try:
             self.model = model_spec(self.model, self.model_options)
             self.model_options = {}
+            model_from_spec(self.model)  # unknown names and options fail here, not after rendering
         except ValueError as exc:
             raise SyntheticError(f"model: {exc}") from None
 
