@@ -1,0 +1,183 @@
+"""The ``shadecap`` command line.
+
+    shadecap demo [--out DIR] [--small]                synthesise → reconstruct → export → print errors
+    shadecap synth --out DIR [...]                     write a synthetic dataset (scripts/make_synthetic.py)
+    shadecap reconstruct DATASET --out DIR [--model NAME|auto] [...]
+    shadecap export-atlas RECON_DIR... --out DIR [...]
+    shadecap models                                    list every reflectance model
+
+Errors a user can fix (bad dataset, unknown model, existing output folder) print one line naming
+the file/field and exit with status 2; they never print a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, FileExistsError, KeyError)
+
+
+def _cmd_models(args) -> int:
+    import materials
+
+    names = materials.available()
+    width = max(len(n) for n in names)
+    for name, desc in names.items():
+        params = ", ".join(materials.get(name).param_names)
+        print(f"{name:<{width}}  {desc}\n{'':<{width}}  params: {params}")
+    return 0
+
+
+def _cmd_synth(args) -> int:
+    from capture.photo import PhotoModel
+    from capture.synthetic import default_scene, make_synthetic, small_scene
+
+    photo = PhotoModel(exposure=args.exposure, full_well=args.noise, read_noise=args.read_noise,
+                       clip=args.clip or args.encoding == "srgb", encoding=args.encoding)
+    over = {k: v for k, v in {
+        "mesh": args.mesh, "n_views": args.views, "image_size": args.size, "texture_size": args.tex,
+        "camera_rig": args.rig, "light_rig": args.lights, "n_lights": args.n_lights, "supersample": args.supersample,
+        "sampling": args.sampling, "seed": args.seed}.items() if v is not None}
+    if args.model:
+        over["model"] = args.model
+        over["model_options"] = json.loads(args.model_options) if args.model_options else {}
+    over["photo"] = photo
+    cfg = small_scene(**over) if args.config == "small" else default_scene(**over)
+    t0 = time.perf_counter()
+    out = make_synthetic(cfg, args.out, overwrite=args.overwrite)
+    print(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _add_synth_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", choices=("default", "small"), default="default", help="base scene")
+    p.add_argument("--out", required=True, help="dataset folder to create (must not exist unless --overwrite)")
+    p.add_argument("--model", help="registered model name, or 'a+b' for a sum (default: ggx-lambert)")
+    p.add_argument("--model-options", help='JSON options of a single model, e.g. \'{"D": "beckmann"}\'')
+    p.add_argument("--mesh", help="uv_sphere, torus, nonconvex, plane, or a mesh file with UVs")
+    p.add_argument("--views", type=int, help="number of views")
+    p.add_argument("--size", type=int, help="image width = height (pixels)")
+    p.add_argument("--tex", type=int, help="ground-truth map size (texels)")
+    p.add_argument("--rig", choices=("orbit", "turntable", "random"), help="camera rig")
+    p.add_argument("--lights", choices=("flash", "fixed", "dome"), help="light rig")
+    p.add_argument("--n-lights", type=int, help="lights per view (flash) or in the studio")
+    p.add_argument("--exposure", type=float, default=1.0)
+    p.add_argument("--noise", type=float, metavar="FULL_WELL", help="shot noise: electrons at saturation")
+    p.add_argument("--read-noise", type=float, default=0.0, help="read noise σ (fraction of saturation)")
+    p.add_argument("--clip", action="store_true", help="clip highlights at 1 (always on for --encoding srgb)")
+    p.add_argument("--encoding", choices=("linear", "srgb"), default="linear", help="EXR float or 8-bit sRGB PNG")
+    p.add_argument("--supersample", type=int, help="k×k rays per pixel")
+    p.add_argument("--sampling", choices=("bilinear", "nearest"))
+    p.add_argument("--seed", type=int)
+    p.add_argument("--overwrite", action="store_true")
+
+
+def _cmd_reconstruct(args) -> int:
+    from capture.reconstruct import reconstruct
+
+    report = reconstruct(args.dataset, model=args.model, out_dir=args.out, force=args.force,
+                         solver=args.solver, loss=args.loss, texture_size=args.tex)
+    summary = Path(args.out) / "summary.txt"
+    print(summary.read_text() if summary.exists() else report)
+    return 0
+
+
+def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", default="auto", help="model name, or 'auto' (cheapest that explains the photos)")
+    p.add_argument("--solver", choices=("fast", "adam"), default="fast",
+                   help="fast: per-texel Gauss-Newton/LM with closed-form linear parameters; adam: first order")
+    p.add_argument("--loss", choices=("l2", "huber", "l1"), default="l2", help="robust loss (huber/l1 for highlights)")
+    p.add_argument("--tex", type=int, default=None, help="texture size of the recovered maps (default: the dataset's)")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+
+
+def _cmd_export(args) -> int:
+    from capture.export import export_atlas_dirs
+
+    side = export_atlas_dirs(args.recon_dirs, args.out, atlas_size=args.size, gutter=args.gutter, bits=args.bits,
+                             fmt=args.format, transfer=args.transfer, force=args.force, glb=not args.no_glb)
+    print(f"wrote atlas {args.out}: {len(side.get('materials', []))} material(s), "
+          f"{side.get('resolution')} ({side.get('encoding', {})})")
+    return 0
+
+
+def _add_export_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, help="atlas folder to create")
+    p.add_argument("--size", type=int, default=None, help="atlas size in texels (default: smallest that fits)")
+    p.add_argument("--gutter", type=int, default=4, help="texels between materials (mip-map safety)")
+    p.add_argument("--bits", type=int, choices=(8, 16), default=8)
+    p.add_argument("--format", choices=("png", "exr"), default="png")
+    p.add_argument("--transfer", choices=("gamma2.2", "srgb"), default="gamma2.2",
+                   help="colour encoding of K_diffuse/K_specular (Schüler: gamma 2.2)")
+    p.add_argument("--no-glb", action="store_true", help="skip the glTF/GLB export")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+
+
+def _cmd_demo(args) -> int:
+    from capture.export import export_atlas_dirs
+    from capture.reconstruct import reconstruct
+    from capture.synthetic import default_scene, make_synthetic, small_scene
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise FileExistsError(f"{out} exists; pass --force to replace it or choose another --out")
+    cfg = small_scene("ggx-lambert", image_size=128, texture_size=64, n_views=8) if args.small else default_scene()
+    t0 = time.perf_counter()
+    print(f"[1/3] synthesising the default scene ({cfg.n_views} views of {cfg.image_size} px, "
+          f"{cfg.texture_size}² maps, model {cfg.model}) → {out / 'dataset'}")
+    make_synthetic(cfg, out / "dataset", overwrite=True)
+    t1 = time.perf_counter()
+    print(f"      {t1 - t0:.1f} s\n[2/3] reconstructing with model {args.model} → {out / 'recon'}")
+    report = reconstruct(out / "dataset", model=args.model, out_dir=out / "recon", force=True)
+    t2 = time.perf_counter()
+    print(f"      {t2 - t1:.1f} s\n[3/3] exporting the Schüler atlas → {out / 'atlas'}")
+    export_atlas_dirs([out / "recon"], out / "atlas", force=True)
+    t3 = time.perf_counter()
+    print(f"      {t3 - t2:.1f} s\n")
+    summary = out / "recon" / "summary.txt"
+    print(summary.read_text() if summary.exists() else json.dumps(getattr(report, "errors", {}), indent=2))
+    print(f"total {t3 - t0:.1f} s; outputs in {out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="shadecap", description="Differentiable material capture (see README.md).")
+    sub = ap.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("demo", help="synthesise the default scene, reconstruct, export the atlas, print errors")
+    p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
+    p.add_argument("--model", default="ggx-lambert", help="model to reconstruct with (or 'auto')")
+    p.add_argument("--small", action="store_true", help="a small, fast scene instead of the default one")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.set_defaults(func=_cmd_demo)
+    p = sub.add_parser("synth", help="write a synthetic dataset with ground truth")
+    _add_synth_args(p)
+    p.set_defaults(func=_cmd_synth)
+    p = sub.add_parser("reconstruct", help="recover material maps from a dataset")
+    p.add_argument("dataset", help="dataset folder (docs/dataset-format.md)")
+    p.add_argument("--out", required=True, help="output folder")
+    _add_reconstruct_args(p)
+    p.set_defaults(func=_cmd_reconstruct)
+    p = sub.add_parser("export-atlas", help="pack reconstructions into a Schüler two-RGBA atlas (+ glTF)")
+    p.add_argument("recon_dirs", nargs="+", help="reconstruction output folders")
+    _add_export_args(p)
+    p.set_defaults(func=_cmd_export)
+    p = sub.add_parser("models", help="list every reflectance model with its parameters")
+    p.set_defaults(func=_cmd_models)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except USER_ERRORS as exc:
+        print(f"shadecap {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
