@@ -281,6 +281,10 @@ R = st.one_of(st.sampled_from([0.0, 1.0, rough.R_MIN]), st.floats(0.0, 1.0))
 F0V = st.one_of(st.sampled_from([0.0, 1.0]), st.floats(0.0, 1.0))
 
 
+def _f32(x):
+    return float(np.float32(x))
+
+
 def _eval(nl, nv, phi, r, f0, dtype, d, gname, fname):
     nl_t = torch.tensor([nl], dtype=dtype, requires_grad=True)
     nv_t = torch.tensor([nv], dtype=dtype, requires_grad=True)
@@ -292,26 +296,32 @@ def _eval(nl, nv, phi, r, f0, dtype, d, gname, fname):
     g = Angles.from_cosines(nl_t, nv_t, lv)
     out = mf.microfacet_specular(g, f0_t, rough.roughness_to_alpha(r_t), d, gname, fname)
     (out * g.nl.clamp_min(0)).sum().backward()
-    return out, (nl_t.grad, nv_t.grad, r_t.grad, f0_t.grad)
+    return out, (nl_t.grad, nv_t.grad, r_t.grad, f0_t.grad), g
 
 
 @given(nl=COS, nv=COS, phi=PHI, r=R, f0=F0V, fname=st.sampled_from(list(FRESNEL)))
 def test_property_finite_and_precision(nl, nv, phi, r, f0, fname):
+    """Finite value and gradient in float64 and float32; the float32 lobe matches the float64 lobe
+    evaluated at the same (float32) cosines and parameters. The comparison is made on the lobe's own
+    inputs because float32 cosines themselves cannot resolve the sharpest lobes: at r = R_MIN
+    (α² ≈ 3e-5) near grazing mirror configurations, n·h from float32 cosines is off by more than the
+    lobe width (measured 12 % at n·l = 0.06, n·v = 0.016)."""
+    nl, nv, phi, r, f0 = map(_f32, (nl, nv, phi, r, f0))
     for d, gname in itertools.product(mf.DISTRIBUTIONS, mf.GEOMETRIES):
-        o64, g64 = _eval(nl, nv, phi, r, f0, D64, d, gname, fname)
-        o32, g32 = _eval(nl, nv, phi, r, f0, torch.float32, d, gname, fname)
+        o64, g64, _ = _eval(nl, nv, phi, r, f0, D64, d, gname, fname)
+        o32, g32, ang32 = _eval(nl, nv, phi, r, f0, torch.float32, d, gname, fname)
         for o, grads in ((o64, g64), (o32, g32)):
             assert torch.isfinite(o).all() and (o >= 0).all(), (d, gname, fname, o)
             assert all(x is None or torch.isfinite(x).all() for x in grads), (d, gname, fname, grads)
-        if min(nl, nv) > 1e-3:  # away from the floor where float32 rounding of cosines matters
-            # the sharpest lobe (r → R_MIN, α² ≈ 3e-5) is ill-conditioned in float32: n·h carries an
-            # error of ~6e-8, i.e. ~0.4 % of the GGX width 1 − n·h ≈ α²/2 at the peak
-            torch.testing.assert_close(o32.double(), o64.detach(), rtol=2e-3 if r >= 0.1 else 2e-2, atol=1e-5)
+        a64_ = Angles(*(getattr(ang32, k).detach().double() for k in ("nl", "nv", "nh", "lh", "lv")))
+        ref = mf.microfacet_specular(a64_, torch.tensor([f0] * 3, dtype=D64),
+                                     rough.roughness_to_alpha(torch.tensor([r], dtype=D64)), d, gname, fname)
+        torch.testing.assert_close(o32.detach().double(), ref, rtol=1e-3, atol=1e-6)
 
 
 def test_extreme_grid_all_combos():
     """Every combination over a grid of extreme cosines, roughnesses and f0, batched: finite values and
-    gradients, and float32 ≈ float64 away from the cosine floor."""
+    gradients, and the float32 lobe ≈ the float64 lobe at the same cosines."""
     cs = [-1e-3, 0.0, 1e-7, 1e-3, 0.5, 1.0 - 1e-7, 1.0]
     nl, nv, phi, r, f0 = (x.reshape(-1, 1) for x in torch.meshgrid(
         torch.tensor(cs, dtype=D64), torch.tensor(cs, dtype=D64), torch.tensor([0.0, 2.0, math.pi], dtype=D64),
@@ -329,10 +339,10 @@ def test_extreme_grid_all_combos():
             assert torch.isfinite(out).all() and (out >= 0).all(), (d, gname, fname)
             assert all(x.grad is None or torch.isfinite(x.grad).all() for x in xs), (d, gname, fname)
             outs[dt] = out.detach().double()
-        ok = (nl > 1e-3) & (nv > 1e-3)
-        sharp = ok & (r < 0.1)  # float32-conditioned peak, see test_property_finite_and_precision
-        torch.testing.assert_close(outs[torch.float32][ok & ~sharp], outs[D64][ok & ~sharp], rtol=2e-3, atol=1e-5)
-        torch.testing.assert_close(outs[torch.float32][sharp], outs[D64][sharp], rtol=2e-2, atol=1e-5)
+            if dt == torch.float32:  # float64 lobe at the float32 cosines (see the property test)
+                g64 = Angles(*(getattr(g, k).detach().double() for k in ("nl", "nv", "nh", "lh", "lv")))
+                ref = mf.microfacet_specular(g64, f0, rough.roughness_to_alpha(r), d, gname, fname)
+                torch.testing.assert_close(outs[dt], ref, rtol=1e-3, atol=1e-6)
 
 
 def test_l_equals_minus_v_and_back_facing_are_zero():

@@ -257,20 +257,23 @@ def _eval(nl, nv, phi, r, f0, dtype):
         out = sc.schuler_specular(g, f0_t, r_t, variant)
         (out * g.nl.clamp_min(0)).sum().backward(retain_graph=True)
         outs.append(out.detach().double())
-    return outs, [x.grad for x in (nl_t, nv_t, r_t, f0_t)]
+    return outs, [x.grad for x in (nl_t, nv_t, r_t, f0_t)], g
 
 
 @given(nl=COS, nv=COS, phi=PHI, r=R, f0=F0V)
 def test_property_finite_and_precision(nl, nv, phi, r, f0):
-    o64, g64 = _eval(nl, nv, phi, r, f0, D64)
-    o32, g32 = _eval(nl, nv, phi, r, f0, torch.float32)
+    """Finite values and gradients; float32 lobes ≈ float64 lobes at the same float32 cosines
+    (see tests/materials/test_microfacet.py::test_property_finite_and_precision for why)."""
+    nl, nv, phi, r, f0 = (float(np.float32(x)) for x in (nl, nv, phi, r, f0))
+    o64, g64, _ = _eval(nl, nv, phi, r, f0, D64)
+    o32, g32, ang = _eval(nl, nv, phi, r, f0, torch.float32)
     for outs, grads in ((o64, g64), (o32, g32)):
         assert all(torch.isfinite(o).all() and (o >= 0).all() for o in outs), outs
         assert all(x is None or torch.isfinite(x).all() for x in grads), grads
-    if min(nl, nv) > 1e-3:
-        rtol = 2e-3 if r >= 0.1 else 2e-2  # float32 conditioning of the sharpest peak, as in test_microfacet
-        for a, b in zip(o32, o64, strict=True):
-            torch.testing.assert_close(a, b, rtol=rtol, atol=1e-5)
+    ang64 = Angles(*(getattr(ang, k).detach().double() for k in ("nl", "nv", "nh", "lh", "lv")))
+    for variant, o in zip(sc.VARIANTS, o32, strict=True):
+        ref = sc.schuler_specular(ang64, torch.tensor([f0] * 3, dtype=D64), torch.tensor([r], dtype=D64), variant)
+        torch.testing.assert_close(o, ref, rtol=1e-3, atol=1e-6)
 
 
 @given(nz=st.floats(-1.0, 1.0), vx=st.floats(-1.0, 1.0), r=R, f0=F0V)
