@@ -36,8 +36,9 @@ cover [0, π)). At θ_h = 0 or θ_d = 0, φ_d is undefined; we use cos φ_d = 0 
 ``reference_values.json`` uses at θ_h = 0. Physically φ_d is irrelevant at θ_h = 0, but the network is not
 φ_d-invariant there: over φ_d ∈ [0, π] at θ_h = 0 its value spreads by 2-13 % at θ_d = 0.3 and 9-47 % at
 θ_d = 1.4 (six reference materials). In float32, 1 − (n·h)² underflows for θ_h ≲ 3e-4 rad, φ_d is then lost and
-the value can jump by that spread; float64 cosines resolve it. Swapping l and v maps φ_d → π − φ_d, so reciprocity of this decoder is
-exactly the network's symmetry f(φ_d) = f(π − φ_d), which the network does not enforce: measured over the
+the value can jump by that spread; float64 cosines resolve it.
+Swapping l and v maps φ_d → π − φ_d, so reciprocity of this decoder is exactly the network's symmetry
+f(φ_d) = f(π − φ_d), which the network does not enforce: measured over the
 front-facing domain it holds to a median relative difference of 1-4 % (90th percentile 5-23 %, worst for chrome
 and blue-metallic-paint). ``symmetric=True`` averages the two, making the decoder exactly reciprocal at twice
 the cost; the default evaluates the network as fitted.

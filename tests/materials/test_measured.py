@@ -154,7 +154,8 @@ def test_float32_and_vectors_entry_point():
     m = materials.get("measured", material="red-fabric2")
     g64 = _random_front(3000, seed=5)
     # float32 cosines cannot resolve θ_h below ~3e-4 rad (1 − n·h underflows), so φ_d is lost there and the
-    # network (not φ_d-invariant at θ_h → 0, see the module docstring) jumps by up to ~7 %; the relative error of sin²θ_h is ~6e-8/θ_h², so compare above 5e-3 rad.
+    # network (not φ_d-invariant at θ_h → 0, see the module docstring) jumps by up to ~7 %; the relative error of
+    # sin²θ_h is ~6e-8/θ_h², so compare above 5e-3 rad.
     g64 = g64[(g64.nh < math.cos(5e-3)).squeeze(-1)]
     a = m.brdf(g64)
     b = m.brdf(g64.to(torch.float32))
