@@ -1,0 +1,414 @@
+"""Photos + G-buffers → a flat list of valid samples: what the solver fits.
+
+Geometry, cameras and lights are known, so everything that depends only on them is computed once
+(DESIGN.md, "Speed: skip what a scene does not need"): the renderer's G-buffer of each view and
+its :func:`renderer.shading.prepare` (per light the :class:`materials.Angles` and the irradiance
+E·V of the samples it reaches). This module pairs those with the measured pixels and keeps only
+the samples that can inform a material parameter. Each dropped pixel is counted under one reason,
+checked in this order:
+
+``background``   the camera ray missed the mesh;
+``nonfinite``    a NaN or ±inf channel in the photo;
+``clipped``      a channel at or above the saturation level (the sensor clipped, the value is a
+                 lower bound, not a measurement);
+``backfacing``   the interpolated shading normal faces away from the camera (n·v ≤ 0, silhouettes);
+``shadowed``     some light would reach the sample geometrically but every such light is occluded;
+``unlit``        no light faces the sample at all.
+
+Measured radiance is ``photo / exposure`` in linear RGB (a PNG is decoded from sRGB first by the
+dataset loader), the same unit as the irradiance E times a BRDF in 1/sr (DESIGN.md, radiometry).
+
+An :class:`Observations` stores the kept samples flat (S of them) and, separately, the (sample,
+light) *pairs* (Q of them) with their Angles and E·V, so that a model evaluation is one call over
+all pairs followed by an ``index_add`` onto the samples — no loop over lights, pixels or texels.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+
+import torch
+from torch import Tensor
+
+from materials.geometry import Angles
+from materials.model import Model
+
+__all__ = ["Observations", "ObservationError", "DROP_REASONS", "observe_views", "synthetic_observations"]
+
+#: Drop reasons in the order they are tested (each pixel is counted once, under the first that applies).
+DROP_REASONS = ("background", "nonfinite", "clipped", "backfacing", "shadowed", "unlit")
+
+
+class ObservationError(ValueError):
+    """Inputs that cannot be turned into observations (shapes, sizes, no valid sample at all)."""
+
+
+@dataclass
+class Observations:
+    """Flat valid samples of all views (S samples, Q (sample, light) pairs).
+
+    Attributes:
+        texel: ``[S]`` int64 flat index ``i·W + j`` of the texel containing each sample's UV
+            (nearest texel, :func:`renderer.texture.texel_of`).
+        map_size: ``(H, W)`` of the maps the texel indices refer to.
+        radiance: ``[S, 3]`` measured linear radiance (photo / exposure), ≥ 0 in practice.
+        weight: ``[S]`` per-sample weight (1 by default; a noise model may lower it).
+        pair_sample: ``[Q]`` int64 sample index of each (sample, light) pair.
+        pair_light: ``[Q]`` int64 index of the light among the scene's lights.
+        angles: :class:`materials.Angles` of the pairs, each cosine ``[Q, 1]``.
+        irradiance: ``[Q, 3]`` E·V of the pairs (visibility included).
+        view: ``[S]`` int64 view index; pixel: ``[S]`` int64 flat pixel index y·W + x in its view.
+        uv: ``[S, 2]``; n, v: ``[S, 3]`` unit shading normal and view direction.
+        bilinear_index, bilinear_weight: ``[S, 4]`` optional bilinear texels/weights of the UV.
+        env_terms: environment lights ``(light, sample index [E])`` (evaluated with
+            ``model.environment``), usually empty.
+        drops: pixels dropped per reason (:data:`DROP_REASONS`), summed over views.
+        n_views: number of views; image_size: ``(height, width)`` per view.
+        n_lights: number of point/directional lights in the scene.
+    """
+
+    texel: Tensor
+    map_size: tuple[int, int]
+    radiance: Tensor
+    weight: Tensor
+    pair_sample: Tensor
+    pair_light: Tensor
+    angles: Angles
+    irradiance: Tensor
+    view: Tensor
+    pixel: Tensor
+    uv: Tensor | None = None
+    n: Tensor | None = None
+    v: Tensor | None = None
+    bilinear_index: Tensor | None = None
+    bilinear_weight: Tensor | None = None
+    env_terms: list = field(default_factory=list)
+    drops: dict = field(default_factory=dict)
+    n_views: int = 1
+    image_size: list = field(default_factory=list)
+    n_lights: int = 1
+
+    # -- sizes --------------------------------------------------------------------------------
+    @property
+    def n_samples(self) -> int:
+        return int(self.texel.shape[0])
+
+    @property
+    def n_pairs(self) -> int:
+        return int(self.pair_sample.shape[0])
+
+    @property
+    def n_texels(self) -> int:
+        return self.map_size[0] * self.map_size[1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.radiance.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.radiance.device
+
+    # -- coverage -----------------------------------------------------------------------------
+    def samples_per_texel(self) -> Tensor:
+        """``[H, W]`` int64: how many samples fall in each texel."""
+        H, W = self.map_size
+        return torch.bincount(self.texel, minlength=H * W).reshape(H, W)
+
+    def views_per_texel(self) -> Tensor:
+        """``[H, W]`` int64: in how many distinct views each texel was seen (by a kept sample)."""
+        H, W = self.map_size
+        key = torch.unique(self.texel * max(self.n_views, 1) + self.view)
+        return torch.bincount(key // max(self.n_views, 1), minlength=H * W).reshape(H, W)
+
+    def lit_texels(self) -> int:
+        return int((self.samples_per_texel() > 0).sum())
+
+    # -- evaluation ---------------------------------------------------------------------------
+    def per_sample(self, maps: Mapping[str, Tensor], sampling: str = "nearest") -> dict[str, Tensor]:
+        """Sample maps ``name → [H, W, C]`` at every observation → ``name → [S, C]``."""
+        out = {}
+        for k, m in maps.items():
+            if m.dim() != 3 or tuple(m.shape[:2]) != tuple(self.map_size):
+                raise ObservationError(
+                    f"map '{k}' must be [H, W, C] with (H, W) = {self.map_size} (the observations' map size), "
+                    f"got {tuple(m.shape)}")
+            flat = m.reshape(-1, m.shape[-1])
+            if sampling == "nearest":
+                out[k] = flat[self.texel]
+            elif sampling == "bilinear":
+                if self.bilinear_index is None:
+                    raise ObservationError("bilinear sampling needs observations built with bilinear=True")
+                out[k] = (flat[self.bilinear_index] * self.bilinear_weight.unsqueeze(-1).to(m.dtype)).sum(-2)
+            else:
+                raise ObservationError(f"sampling must be 'nearest' or 'bilinear', got {sampling!r}")
+        return out
+
+    def predict(self, model: Model, params: Mapping[str, Tensor]) -> Tensor:
+        """Predicted radiance ``[S, 3]`` from per-sample canonical parameters ``name → [S, C]``.
+
+        ``L_s = Σ_pairs E·V · model.cosine_brdf(angles, p_s)`` (+ environment terms), accumulated
+        with ``index_add``; differentiable (reverse and forward mode) with respect to ``params``.
+        """
+        S = self.n_samples
+        ref = next(iter(params.values()))
+        pq = {k: x[self.pair_sample] for k, x in params.items()}
+        rad = self.irradiance.to(ref.dtype) * model.cosine_brdf(self.angles, pq)
+        out = torch.zeros(S, 3, dtype=rad.dtype, device=rad.device).index_add(0, self.pair_sample, rad)
+        for light, idx in self.env_terms:
+            pe = {k: x[idx] for k, x in params.items()}
+            env = model.environment(light, self.n[idx], self.v[idx], pe)
+            out = out.index_add(0, idx, env.expand(len(idx), 3))
+        return out
+
+    # -- subsets and casts --------------------------------------------------------------------
+    def select(self, keep: Tensor) -> Observations:
+        """Observations restricted to the samples where ``keep [S]`` (bool) holds (pairs follow)."""
+        if keep.dtype != torch.bool or keep.shape != (self.n_samples,):
+            raise ObservationError(f"select: keep must be a bool tensor [{self.n_samples}], got {keep.dtype} "
+                                   f"{tuple(keep.shape)}")
+        new_index = torch.full((self.n_samples,), -1, dtype=torch.long, device=self.device)
+        new_index[keep] = torch.arange(int(keep.sum()), device=self.device)
+        pk = keep[self.pair_sample]
+        opt = lambda x: None if x is None else x[keep]  # noqa: E731
+        envs = []
+        for light, idx in self.env_terms:
+            ek = keep[idx]
+            envs.append((light, new_index[idx[ek]]))
+        return Observations(
+            texel=self.texel[keep], map_size=self.map_size, radiance=self.radiance[keep], weight=self.weight[keep],
+            pair_sample=new_index[self.pair_sample[pk]], pair_light=self.pair_light[pk], angles=self.angles[pk],
+            irradiance=self.irradiance[pk], view=self.view[keep], pixel=self.pixel[keep], uv=opt(self.uv),
+            n=opt(self.n), v=opt(self.v), bilinear_index=opt(self.bilinear_index),
+            bilinear_weight=opt(self.bilinear_weight), env_terms=envs, drops=dict(self.drops),
+            n_views=self.n_views, image_size=list(self.image_size), n_lights=self.n_lights)
+
+    def select_views(self, views: Sequence[int]) -> Observations:
+        """Only the samples of the given view indices."""
+        v = torch.as_tensor(list(views), dtype=torch.long, device=self.device)
+        return self.select(torch.isin(self.view, v))
+
+    def to(self, device=None, dtype=None) -> Observations:
+        """Move to ``device`` and cast floating tensors to ``dtype``."""
+        def mv(x):
+            if isinstance(x, Tensor):
+                return x.to(device=device, dtype=dtype if x.is_floating_point() else None)
+            if isinstance(x, Angles):
+                return x.to(device=device, dtype=dtype)
+            return x
+        kw = {f.name: mv(getattr(self, f.name)) for f in fields(self)}
+        kw["env_terms"] = [(light, idx.to(device=device)) for light, idx in self.env_terms]
+        return Observations(**kw)
+
+
+def _check_image(img: Tensor, h: int, w: int, where: str) -> Tensor:
+    if not isinstance(img, Tensor) or img.dim() != 3 or img.shape[-1] != 3:
+        raise ObservationError(f"{where}: photo must be a tensor [H, W, 3] (linear RGB), got "
+                               f"{tuple(img.shape) if isinstance(img, Tensor) else type(img).__name__}")
+    if tuple(img.shape[:2]) != (h, w):
+        raise ObservationError(f"{where}: photo is {img.shape[1]}×{img.shape[0]} pixels but the camera is "
+                               f"{w}×{h}; resize the photo or fix the camera's width/height")
+    return img
+
+
+def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[int, int], *,
+                  exposure: Sequence[float] | float = 1.0, saturation: float | None = None,
+                  lights: Sequence | None = None, bilinear: bool = False, dtype=None) -> Observations:
+    """Build :class:`Observations` from prepared G-buffers and the photos of the same views.
+
+    Args:
+        prepared: per view a :class:`renderer.shading.Prepared` (``prepare(gbuffer, mesh, lights)``)
+            from a G-buffer rendered with ``supersample=1`` (one sample per pixel centre).
+        photos: per view the photo ``[H, W, 3]`` in *linear* RGB (decode PNG/sRGB first), as stored,
+            i.e. before division by the exposure.
+        map_size: ``(H, W)`` of the material maps.
+        exposure: the linear factor between radiance and pixel value, per view or one for all (> 0).
+        saturation: pixel value (before the exposure division) at or above which a channel counts as
+            clipped; ``None`` = never (float EXR without a white level). 8-bit photos: pass ~0.999.
+        lights: the scene's point/directional lights in order (to attribute pairs to lights and to
+            tell shadowed from unlit); default: taken from the first view's prepared terms.
+        bilinear: also store bilinear texel indices/weights (for bilinear-sampling solvers/renders).
+        dtype: floating dtype of the result (default: the photos').
+
+    Returns:
+        :class:`Observations` with the drop counts filled in.
+
+    Raises:
+        ObservationError: mismatched lists, photo size ≠ camera size, bad exposure, no sample left.
+    """
+    from renderer.texture import bilinear_weights, texel_of
+
+    if len(prepared) != len(photos):
+        raise ObservationError(f"got {len(prepared)} prepared views but {len(photos)} photos; pass one photo per view")
+    if len(prepared) == 0:
+        raise ObservationError("no views: pass at least one prepared G-buffer and its photo")
+    if not (isinstance(map_size, Sequence) and len(map_size) == 2 and all(int(x) >= 1 for x in map_size)):
+        raise ObservationError(f"map_size must be (H, W) with positive integers, got {map_size!r}")
+    H, W = int(map_size[0]), int(map_size[1])
+    exposures = [float(exposure)] * len(prepared) if isinstance(exposure, (int, float)) else [float(e) for e in exposure]
+    if len(exposures) != len(prepared) or any(not (e > 0 and e < float("inf")) for e in exposures):
+        raise ObservationError(f"exposure must be one positive finite number or one per view, got {exposure!r}")
+    if lights is None:
+        lights = []
+        for t in prepared[0].lights:
+            if all(t.light is not x for x in lights):
+                lights.append(t.light)
+    light_id = {id(x): i for i, x in enumerate(lights)}
+    drops = dict.fromkeys(DROP_REASONS, 0)
+    parts = []
+    for vi, (prep, photo) in enumerate(zip(prepared, photos)):
+        g = prep.gbuffer
+        if g is None:
+            raise ObservationError(f"view {vi}: Prepared has no G-buffer; call renderer.shading.prepare(gbuffer, ...)")
+        if g.supersample != 1:
+            raise ObservationError(f"view {vi}: observations need a G-buffer with supersample=1 (one sample per "
+                                   f"pixel), got supersample={g.supersample}")
+        photo = _check_image(photo, g.height, g.width, f"view {vi}")
+        dt = dtype or (photo.dtype if photo.is_floating_point() else torch.float32)
+        photo = photo.to(dtype=dt, device=g.position.device)
+        flat = photo.reshape(-1, 3)
+        n_pix = g.height * g.width
+        drops["background"] += n_pix - len(g)
+        pix = flat[g.pixel]                                    # [N, 3] for every hit sample
+        finite = torch.isfinite(pix).all(-1)
+        clipped = finite & ((pix >= saturation).any(-1) if saturation is not None else torch.zeros_like(finite))
+        facing = (g.normal * g.view).sum(-1) > 0
+        lit = torch.zeros(len(g), dtype=torch.bool, device=finite.device)
+        lit[prep.sample] = True
+        # samples a light faces geometrically (for shadowed vs unlit); cheap vector ops, no rays
+        could = torch.zeros_like(lit)
+        for t in prep.lights:
+            could[t.index] = True
+        for light in lights:
+            try:
+                ldir, _, _ = light.incident(g.position)
+            except Exception:  # environment lights have no direction
+                continue
+            could |= ((g.normal * ldir).sum(-1) > 0) & ((g.geo_normal * ldir).sum(-1) > 0)
+        ok = finite & ~clipped & facing & lit
+        drops["nonfinite"] += int((~finite).sum())
+        drops["clipped"] += int(clipped.sum())
+        rest = finite & ~clipped
+        drops["backfacing"] += int((rest & ~facing).sum())
+        rest = rest & facing
+        drops["shadowed"] += int((rest & ~lit & could).sum())
+        drops["unlit"] += int((rest & ~lit & ~could).sum())
+        keep_g = torch.nonzero(ok).squeeze(-1)                 # G-buffer indices kept
+        local = torch.full((len(g),), -1, dtype=torch.long, device=finite.device)
+        local[keep_g] = torch.arange(len(keep_g), device=finite.device)
+        pairs = []
+        for t in prep.lights:
+            sel = ok[t.index]
+            if not bool(sel.any()):
+                continue
+            lid = light_id.get(id(t.light), -1)
+            pairs.append((local[t.index[sel]], torch.full((int(sel.sum()),), lid, dtype=torch.long,
+                                                           device=finite.device),
+                          t.angles[sel].to(dtype=dt), t.irradiance[sel].to(dt)))
+        envs = []
+        for e in prep.envs:
+            sel = ok[e.index]
+            envs.append((e.light, local[e.index[sel]]))
+        uv = g.uv[keep_g].to(dt)
+        parts.append(dict(uv=uv, n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt), radiance=pix[keep_g] / exposures[vi],
+                          pixel=g.pixel[keep_g], pairs=pairs, envs=envs, view=vi, size=(g.height, g.width)))
+    # concatenate views, offsetting sample indices
+    offs, S = [], 0
+    for p in parts:
+        offs.append(S)
+        S += len(p["uv"])
+    if S == 0:
+        raise ObservationError(f"no valid sample in any view (dropped: {drops}); check that the cameras see the "
+                               f"mesh, the lights face it, and the photos are not saturated or NaN")
+    cat = lambda key: torch.cat([p[key] for p in parts])  # noqa: E731
+    uv = cat("uv")
+    ps, pl, ang, irr = [], [], [], []
+    for o, p in zip(offs, parts):
+        for s, lid, a, e in p["pairs"]:
+            ps.append(s + o)
+            pl.append(lid)
+            ang.append(a)
+            irr.append(e)
+    envs_all: dict[int, tuple] = {}
+    for o, p in zip(offs, parts):
+        for light, idx in p["envs"]:
+            k = id(light)
+            envs_all.setdefault(k, (light, []))[1].append(idx + o)
+    angles = Angles(*(torch.cat([getattr(a, f) for a in ang]) for f in ("nl", "nv", "nh", "lh", "lv")))
+    view = torch.cat([torch.full((len(p["uv"]),), p["view"], dtype=torch.long) for p in parts]).to(uv.device)
+    bi = bw = None
+    if bilinear:
+        bi, bw = bilinear_weights(uv, H, W)
+    return Observations(
+        texel=texel_of(uv, H, W), map_size=(H, W), radiance=cat("radiance"),
+        weight=torch.ones(S, dtype=uv.dtype, device=uv.device), pair_sample=torch.cat(ps),
+        pair_light=torch.cat(pl), angles=angles, irradiance=torch.cat(irr), view=view, pixel=cat("pixel"),
+        uv=uv, n=cat("n"), v=cat("v"), bilinear_index=bi, bilinear_weight=bw,
+        env_terms=[(light, torch.cat(idx)) for light, idx in envs_all.values()], drops=drops,
+        n_views=len(parts), image_size=[p["size"] for p in parts], n_lights=max(len(lights), 1))
+
+
+def _random_unit(n: int, gen: torch.Generator, dtype) -> Tensor:
+    x = torch.randn(n, 3, generator=gen, dtype=dtype)
+    return x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def synthetic_observations(model: Model, maps: Mapping[str, Tensor], samples_per_texel: int = 16, n_lights: int = 2,
+                           n_views: int = 8, irradiance: float = 3.0, seed: int = 0, noise: float = 0.0,
+                           highlight_fraction: float = 0.5, dtype=torch.float64) -> Observations:
+    """Observations built directly from :class:`materials.Angles` and a model — no renderer.
+
+    For solver tests: every texel of the maps gets ``samples_per_texel`` samples with random
+    normal/light/view in the upper hemisphere of a per-sample frame (front-facing for every
+    light), each assigned to a random "view" in ``range(n_views)``. A fraction
+    ``highlight_fraction`` of the pairs has the light near the mirror direction of the view
+    (within ~0.3 rad), so that specular lobes are observed. Radiance is rendered by ``model``
+    from ``maps`` with nearest sampling, plus Gaussian noise of relative std ``noise``.
+
+    Args:
+        model: the material model; maps: ``name → [H, W, C]`` holding exactly ``model.params``.
+        irradiance: E of every light (white).
+    """
+    if samples_per_texel < 1 or n_lights < 1 or n_views < 1:
+        raise ObservationError("samples_per_texel, n_lights and n_views must be ≥ 1")
+    H, W = next(iter(maps.values())).shape[:2]
+    gen = torch.Generator().manual_seed(seed)
+    T = H * W
+    S = T * samples_per_texel
+    texel = torch.arange(T).repeat_interleave(samples_per_texel)
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
+
+    def upper(n):
+        d = _random_unit(n, gen, dtype)
+        d[:, 2] = d[:, 2].abs() * 0.95 + 0.05
+        return d / d.norm(dim=-1, keepdim=True)
+
+    v = upper(S)
+    n = z.expand(S, 3)
+    ps, pl, ang = [], [], []
+    for k in range(n_lights):
+        l = upper(S)
+        mirror = 2 * v[:, 2:3] * z - v
+        near = mirror + 0.3 * _random_unit(S, gen, dtype) * torch.rand(S, 1, generator=gen, dtype=dtype)
+        near[:, 2] = near[:, 2].clamp_min(0.05)
+        near = near / near.norm(dim=-1, keepdim=True)
+        pick = torch.rand(S, 1, generator=gen, dtype=dtype) < highlight_fraction
+        l = torch.where(pick, near, l)
+        ps.append(torch.arange(S))
+        pl.append(torch.full((S,), k, dtype=torch.long))
+        ang.append(Angles.from_vectors(n, l, v))
+    angles = Angles(*(torch.cat([getattr(a, f) for a in ang]) for f in ("nl", "nv", "nh", "lh", "lv")))
+    Q = S * n_lights
+    obs = Observations(
+        texel=texel, map_size=(H, W), radiance=torch.zeros(S, 3, dtype=dtype), weight=torch.ones(S, dtype=dtype),
+        pair_sample=torch.cat(ps), pair_light=torch.cat(pl), angles=angles,
+        irradiance=torch.full((Q, 3), float(irradiance), dtype=dtype),
+        view=torch.randint(0, n_views, (S,), generator=gen), pixel=torch.arange(S), n=n.clone(), v=v,
+        drops=dict.fromkeys(DROP_REASONS, 0), n_views=n_views, n_lights=n_lights)
+    with torch.no_grad():
+        clean = obs.predict(model, obs.per_sample({k: m.to(dtype) for k, m in maps.items()}))
+    if noise > 0:
+        clean = clean * (1 + noise * torch.randn(clean.shape, generator=gen, dtype=dtype))
+    obs.radiance = clean
+    return obs
