@@ -195,6 +195,7 @@ class FitErrors:
     rel_l1: float
     mae_no_grazing: float
     rel_l1_no_grazing: float
+    rel_l1_grazing: float = math.nan  #: over the grazing samples only (θ_i or θ_o > 80°)
 
 
 @dataclass
@@ -235,6 +236,7 @@ def errors(pred: Tensor, meas: Tensor, samples: SampleSet) -> FitErrors:
         rel_l1=(d.sum() / m.sum().clamp_min(tiny)).item(),
         mae_no_grazing=d[keep].mean().item(),
         rel_l1_no_grazing=(d[keep].sum() / m[keep].sum().clamp_min(tiny)).item(),
+        rel_l1_grazing=(d[~keep].sum() / m[~keep].sum().clamp_min(tiny)).item() if (~keep).any() else math.nan,
     )
 
 
