@@ -147,6 +147,7 @@ class StabilityReport:
     nonfinite_value: int
     nonfinite_grad: int
     max_abs_grad: float
+    max_abs_grad_params: float = 0.0  # worst |∂f/∂parameter| alone (the solver's concern; directions are fixed)
     max_rel_dev_f32: float | None = None  # worst |f32 − f64| / max(|f64|, floor), float32 runs only
 
     @property
@@ -168,15 +169,18 @@ def check_stability(model: Model, dtype=torch.float64, device=None, n_random: in
     bad_value = int((~torch.isfinite(f)).sum() + (~torch.isfinite(fb)).sum())
     inputs = [l, v, *params.values()]
     grads = torch.autograd.grad((f.sum() + fb.sum()), inputs, allow_unused=True)
-    bad_grad, max_grad = 0, 0.0
-    for gr in grads:
+    bad_grad, max_grad, max_param_grad = 0, 0.0, 0.0
+    for k, gr in enumerate(grads):
         if gr is None:
             continue
         bad_grad += int((~torch.isfinite(gr)).sum())
         fin = gr[torch.isfinite(gr)]
         if fin.numel():
             max_grad = max(max_grad, float(fin.abs().max()))
-    report = StabilityReport(model.name, str(dtype).replace("torch.", ""), m, bad_value, bad_grad, max_grad)
+            if k >= 2:
+                max_param_grad = max(max_param_grad, float(fin.abs().max()))
+    report = StabilityReport(model.name, str(dtype).replace("torch.", ""), m, bad_value, bad_grad, max_grad,
+                             max_param_grad)
     if dtype == torch.float32:
         with torch.no_grad():
             g64 = Angles.from_vectors(n.double(), l.double(), v.double())

@@ -149,7 +149,7 @@ class Mesh:
     @property
     def bounds(self) -> Tensor:
         """Axis-aligned bounding box ``[2, 3]`` (min, max)."""
-        return torch.as_tensor(self.tm.bounds, dtype=self.vertices.dtype)
+        return torch.as_tensor(np.array(self.tm.bounds), dtype=self.vertices.dtype)
 
     @property
     def intersector(self):
