@@ -214,7 +214,8 @@ def _check_image(img: Tensor, h: int, w: int, where: str) -> Tensor:
 
 def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[int, int], *,
                   exposure: Sequence[float] | float = 1.0, saturation: float | None = None,
-                  lights: Sequence | None = None, bilinear: bool = False, dtype=None) -> Observations:
+                  lights: Sequence | None = None, bilinear: bool = False, dtype=None,
+                  clipped: Sequence[Tensor] | None = None) -> Observations:
     """Build :class:`Observations` from prepared G-buffers and the photos of the same views.
 
     Args:
@@ -230,6 +231,8 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
             tell shadowed from unlit); default: taken from the first view's prepared terms.
         bilinear: also store bilinear texel indices/weights (for bilinear-sampling solvers/renders).
         dtype: floating dtype of the result (default: the photos').
+        clipped: optional per-view ``[H, W]`` bool masks of saturated pixels (e.g.
+            :attr:`capture.dataset.Photo.saturated`), used in addition to ``saturation``.
 
     Returns:
         :class:`Observations` with the drop counts filled in.
@@ -246,7 +249,8 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
     if not (isinstance(map_size, Sequence) and len(map_size) == 2 and all(int(x) >= 1 for x in map_size)):
         raise ObservationError(f"map_size must be (H, W) with positive integers, got {map_size!r}")
     H, W = int(map_size[0]), int(map_size[1])
-    exposures = [float(exposure)] * len(prepared) if isinstance(exposure, (int, float)) else [float(e) for e in exposure]
+    exposures = ([float(exposure)] * len(prepared) if isinstance(exposure, (int, float))
+                 else [float(e) for e in exposure])
     if len(exposures) != len(prepared) or any(not (e > 0 and e < float("inf")) for e in exposures):
         raise ObservationError(f"exposure must be one positive finite number or one per view, got {exposure!r}")
     if lights is None:
@@ -257,7 +261,7 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
     light_id = {id(x): i for i, x in enumerate(lights)}
     drops = dict.fromkeys(DROP_REASONS, 0)
     parts = []
-    for vi, (prep, photo) in enumerate(zip(prepared, photos)):
+    for vi, (prep, photo) in enumerate(zip(prepared, photos, strict=True)):
         g = prep.gbuffer
         if g is None:
             raise ObservationError(f"view {vi}: Prepared has no G-buffer; call renderer.shading.prepare(gbuffer, ...)")
@@ -272,7 +276,9 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         drops["background"] += n_pix - len(g)
         pix = flat[g.pixel]                                    # [N, 3] for every hit sample
         finite = torch.isfinite(pix).all(-1)
-        clipped = finite & ((pix >= saturation).any(-1) if saturation is not None else torch.zeros_like(finite))
+        clipped_s = finite & ((pix >= saturation).any(-1) if saturation is not None else torch.zeros_like(finite))
+        if clipped is not None:
+            clipped_s = clipped_s | (finite & clipped[vi].to(finite.device).reshape(-1)[g.pixel])
         facing = (g.normal * g.view).sum(-1) > 0
         lit = torch.zeros(len(g), dtype=torch.bool, device=finite.device)
         lit[prep.sample] = True
@@ -286,10 +292,10 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
             except Exception:  # environment lights have no direction
                 continue
             could |= ((g.normal * ldir).sum(-1) > 0) & ((g.geo_normal * ldir).sum(-1) > 0)
-        ok = finite & ~clipped & facing & lit
+        ok = finite & ~clipped_s & facing & lit
         drops["nonfinite"] += int((~finite).sum())
-        drops["clipped"] += int(clipped.sum())
-        rest = finite & ~clipped
+        drops["clipped"] += int(clipped_s.sum())
+        rest = finite & ~clipped_s
         drops["backfacing"] += int((rest & ~facing).sum())
         rest = rest & facing
         drops["shadowed"] += int((rest & ~lit & could).sum())
@@ -311,7 +317,8 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
             sel = ok[e.index]
             envs.append((e.light, local[e.index[sel]]))
         uv = g.uv[keep_g].to(dt)
-        parts.append(dict(uv=uv, n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt), radiance=pix[keep_g] / exposures[vi],
+        parts.append(dict(uv=uv, n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
+                          radiance=pix[keep_g] / exposures[vi],
                           pixel=g.pixel[keep_g], pairs=pairs, envs=envs, view=vi, size=(g.height, g.width)))
     # concatenate views, offsetting sample indices
     offs, S = [], 0
@@ -324,14 +331,14 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
     cat = lambda key: torch.cat([p[key] for p in parts])  # noqa: E731
     uv = cat("uv")
     ps, pl, ang, irr = [], [], [], []
-    for o, p in zip(offs, parts):
+    for o, p in zip(offs, parts, strict=True):
         for s, lid, a, e in p["pairs"]:
             ps.append(s + o)
             pl.append(lid)
             ang.append(a)
             irr.append(e)
     envs_all: dict[int, tuple] = {}
-    for o, p in zip(offs, parts):
+    for o, p in zip(offs, parts, strict=True):
         for light, idx in p["envs"]:
             k = id(light)
             envs_all.setdefault(k, (light, []))[1].append(idx + o)

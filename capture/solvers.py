@@ -113,14 +113,15 @@ class Layout:
         return Layout(tuple(model.params), tuple(offs), o)
 
     def cols(self, name: str) -> list[int]:
-        for s, o in zip(self.specs, self.offsets):
+        for s, o in zip(self.specs, self.offsets, strict=True):
             if s.name == name:
                 return list(range(o, o + s.channels))
         raise KeyError(name)
 
     def unpack(self, theta: Tensor) -> dict[str, Tensor]:
         """θ ``[..., P]`` → canonical parameters ``name → [..., C]``."""
-        return {s.name: to_canonical(s, theta[..., o:o + s.channels]) for s, o in zip(self.specs, self.offsets)}
+        so = zip(self.specs, self.offsets, strict=True)
+        return {s.name: to_canonical(s, theta[..., o:o + s.channels]) for s, o in so}
 
     def pack(self, params: Mapping[str, Tensor]) -> Tensor:
         """Canonical parameters ``name → [..., C or 1]`` → θ ``[..., P]``."""
@@ -134,7 +135,8 @@ class Layout:
 
     def dcanonical(self, theta: Tensor) -> Tensor:
         """dp/dθ per column ``[..., P]``."""
-        return torch.cat([dcanonical(s, theta[..., o:o + s.channels]) for s, o in zip(self.specs, self.offsets)], -1)
+        so = zip(self.specs, self.offsets, strict=True)
+        return torch.cat([dcanonical(s, theta[..., o:o + s.channels]) for s, o in so], -1)
 
 
 # -- losses ---------------------------------------------------------------------------------------
@@ -182,6 +184,7 @@ class FitResult:
         history: total cost after each iteration (robust, weighted, per sample-channel mean).
         iterations: iterations run; time_s: wall time of the solve; solver: "fast" or "adam".
         info: solver-specific numbers (grid time, LM time, accepted fraction, ...).
+        raw: the fitted maps before filling (what best explains the photos; use for re-renders).
     """
 
     maps: dict[str, Tensor]
@@ -195,6 +198,7 @@ class FitResult:
     time_s: float
     solver: str
     info: dict = field(default_factory=dict)
+    raw: dict = field(default_factory=dict)
 
 
 # -- helpers --------------------------------------------------------------------------------------
@@ -229,7 +233,8 @@ def _init_theta(model: Model, layout: Layout, obs: Observations, init: Mapping[s
                 raise SolverError(f"init has map '{k}' that model '{model.name}' does not use; it uses "
                                   f"{list(model.param_names)}")
             if m.dim() != 3 or tuple(m.shape[:2]) != tuple(obs.map_size):
-                raise SolverError(f"init map '{k}' must be [H, W, C] with (H, W) = {obs.map_size}, got {tuple(m.shape)}")
+                raise SolverError(f"init map '{k}' must be [H, W, C] with (H, W) = {obs.map_size}, "
+                                  f"got {tuple(m.shape)}")
             params[k] = m.reshape(T, -1).to(dt, dev).expand(T, model.spec(k).channels)
     return layout.pack(params)
 
@@ -258,7 +263,7 @@ def _separable(model: Model, spec: ParamSpec, dtype) -> bool:
 def _groups(model: Model, layout: Layout, dtype) -> list[tuple[list[int], bool]]:
     """Jacobian passes: (columns, diagonal?) — a separable RGB parameter is one diagonal pass."""
     out = []
-    for s, o in zip(layout.specs, layout.offsets):
+    for s, o in zip(layout.specs, layout.offsets, strict=True):
         if s.channels == 3 and _separable(model, s, dtype):
             out.append((list(range(o, o + 3)), True))
         else:
@@ -333,10 +338,9 @@ def pull_push(values: Tensor, known: Tensor, levels: int | None = None) -> Tenso
     # normalise each level to means where weight > 0
     means = [(x / w.clamp_min(1e-12), (w > 0).to(x.dtype)) for x, w in pyr]
     cur, cur_ok = means[-1]
-    for m, ok in reversed(means[:-1]):
+    for m, ok in reversed(means[:-1]):  # noqa: B007
         up = F.interpolate(cur, size=m.shape[-2:], mode="nearest")
         cur = torch.where(ok > 0, m, up)
-        cur_ok = torch.ones_like(ok)
     out = cur[0].permute(1, 2, 0)
     return torch.where(known[..., None], values, out)
 
@@ -347,6 +351,7 @@ def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, gr
     """Confidence, observability, pull-push filling → :class:`FitResult`."""
     H, W = obs.map_size
     T, P = obs.n_texels, layout.P
+    theta = theta.to(ACC)
     with torch.no_grad():
         pred, J = _jacobian(model, layout, obs, theta[obs.texel], groups)
         r = obs.radiance.to(ACC) - pred
@@ -363,24 +368,43 @@ def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, gr
         dp = layout.dcanonical(theta)                                              # [T, P]
         diag = torch.diagonal(JtJ, dim1=-2, dim2=-1) / dp.square().clamp_min(1e-300)  # canonical units
         rms_signal = (signal / n_res.clamp_min(1)).sqrt().clamp_min(1e-12)
-        sens = 0.1 * (diag / n_res.clamp_min(1)[:, None]).sqrt() / rms_signal[:, None]  # [T, P]
+        # marginal information of each parameter with the others re-optimised: 1 / [(JᵀWJ)⁻¹]_pp,
+        # from a ridge-regularised inverse so that a direction no residual constrains (fewer
+        # residuals than parameters, or a trade-off such as albedo vs f0 without highlights) gets
+        # a huge variance instead of pinv's zero
+        # observability in *relative* residuals (each sample weighted by 1/y², floored at 1 % of
+        # the texel's mean radiance), so that bright highlights do not hide the diffuse samples
+        y = obs.radiance.to(ACC)
+        ymean = torch.zeros(T, dtype=ACC, device=y.device).index_add(0, obs.texel, y.abs().mean(-1))
+        cnt = torch.bincount(obs.texel, minlength=T).to(ACC).clamp_min(1)
+        floor = (0.01 * ymean / cnt)[obs.texel][:, None]
+        wrel = obs.weight.to(ACC)[:, None] / (y.square() + floor.square()).clamp_min(1e-300)
+        JtJr = torch.zeros(T, P, P, dtype=ACC, device=y.device).index_add(
+            0, obs.texel, torch.einsum("scp,sc,scq->spq", J, wrel, J))
+        ridge = 1e-10 * (torch.diagonal(JtJr, dim1=-2, dim2=-1).amax(-1, keepdim=True) + 1e-30)
+        A = JtJr + torch.diag_embed(ridge.expand(T, P))
+        A = torch.where(observed[:, None, None], A, torch.eye(P, dtype=A.dtype, device=A.device))
+        eyeT = torch.eye(P, dtype=A.dtype, device=A.device).expand(T, P, P)
+        cov_rel = torch.diagonal(torch.linalg.solve(A, eyeT), dim1=-2, dim2=-1).clamp_min(1e-300)
+        marginal = 1.0 / (cov_rel * dp.square().clamp_min(1e-300))             # canonical units
+        sens = 0.1 * (marginal / n_res.clamp_min(1)[:, None]).sqrt()            # [T, P] relative change
+        del rms_signal
+        ridge = 1e-10 * (torch.diagonal(JtJ, dim1=-2, dim2=-1).amax(-1, keepdim=True) + 1e-30)
+        A = JtJ + torch.diag_embed(ridge.expand(T, P))
+        A = torch.where(observed[:, None, None], A, torch.eye(P, dtype=A.dtype, device=A.device))
+        cov_diag = torch.diagonal(torch.linalg.solve(A, eyeT), dim1=-2, dim2=-1).clamp_min(0)
+        del diag
         # posterior std: sigma² (JᵀWJ)⁻¹ in θ, mapped by dp/dθ
         dof = (n_res - P).clamp_min(1)
         s2 = sig2 / dof
-        ridge = 1e-12 * (torch.diagonal(JtJ, dim1=-2, dim2=-1).mean(-1, keepdim=True) + 1e-30)
-        A = JtJ + torch.diag_embed(ridge.expand(T, P))
-        A = torch.where(observed[:, None, None], A, torch.eye(P, dtype=A.dtype, device=A.device))
-        cov_diag = torch.diagonal(torch.linalg.pinv(A, hermitian=True), dim1=-2, dim2=-1)
         std = (s2[:, None] * cov_diag.clamp_min(0)).sqrt() * dp
     params = layout.unpack(theta.detach().to(obs.dtype))
     maps, unobs, filled, conf, sensitivity = {}, {}, {}, {}, {}
     obs_hw = observed.reshape(H, W)
-    for s, o in zip(layout.specs, layout.offsets):
+    for s, o in zip(layout.specs, layout.offsets, strict=True):
         sl = slice(o, o + s.channels)
         sp = sens[:, sl].amax(-1)
         bad = observed & (sp < observable_threshold)
-        if s.linear and s.name == "albedo":
-            bad = observed & (sp < observable_threshold * 0.01)
         val = params[s.name].reshape(H, W, s.channels)
         known = (observed & ~bad).reshape(H, W)
         fill_val = pull_push(val, known) if bool(known.any()) else s.full((H, W), device=val.device, dtype=val.dtype)
@@ -393,7 +417,8 @@ def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, gr
         sensitivity[s.name] = torch.where(obs_hw, sp.reshape(H, W), torch.full_like(sp.reshape(H, W), float("nan")))
     return FitResult(maps=maps, observed=obs_hw, unobservable=unobs, filled=filled, confidence=conf,
                      sensitivity=sensitivity, history=history, iterations=iterations, time_s=time.perf_counter() - t0,
-                     solver=solver, info=info)
+                     solver=solver, info=info,
+                     raw={k: v.reshape(H, W, -1) for k, v in params.items()})
 
 
 # -- fast path ------------------------------------------------------------------------------------
@@ -522,7 +547,7 @@ def _closed_form_init(model: Model, layout: Layout, obs: Observations, theta: Te
 
 
 def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: float | None = None,
-               iterations: int = 30, grid: int = 16, schedule: str = "joint", smoothness: float = 0.0,
+               iterations: int = 60, grid: int = 32, schedule: str = "joint", smoothness: float = 0.0,
                init: Mapping[str, Tensor] | None = None, tol: float = 1e-10, observable_threshold: float = 0.01,
                reproject: int = 0, progress: Callable[[str, int, float], None] | None = None) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
@@ -648,7 +673,9 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                 old_cost = cost_t
                 if smoothness > 0:
                     nsum, cnt = _neighbour_sum(theta, H, W, observed)
-                    prior = lambda th: mu * ((cnt * th.square() - 2 * th * nsum).sum(-1))  # noqa: E731
+                    def prior(th, mu=mu, cnt=cnt, nsum=nsum):
+                        return mu * ((cnt * th.square() - 2 * th * nsum).sum(-1))
+
                     new_cost_c, old_cost_c = new_cost + prior(trial), cost_t + prior(theta)
                 else:
                     new_cost_c, old_cost_c = new_cost, old_cost

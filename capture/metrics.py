@@ -1,0 +1,96 @@
+"""Errors of recovered maps against ground truth, and of re-rendered views against photos.
+
+* :func:`map_errors` — per map RMSE and max |error| over a texel mask (normally the observed
+  texels, optionally also excluding texels where the parameter was unobservable), overall and
+  per material region of a region-id map.
+* :func:`image_metrics` — PSNR and SSIM (``kornia.metrics``) of a re-rendered view against its
+  photo, over the image (background is 0 in both), with the peak taken as the photo's maximum.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+from torch import Tensor
+
+__all__ = ["map_errors", "image_metrics", "MetricsError"]
+
+
+class MetricsError(ValueError):
+    """Maps or images that cannot be compared (missing names, shape mismatch, empty mask)."""
+
+
+def _stats(d: Tensor) -> dict:
+    """RMSE and max over the rows of ``d [K, C]`` (all channels pooled)."""
+    if d.numel() == 0:
+        return {"rmse": float("nan"), "max": float("nan"), "texels": 0}
+    return {"rmse": float(d.square().mean().sqrt()), "max": float(d.abs().max()), "texels": int(d.shape[0])}
+
+
+def map_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], mask: Tensor,
+               regions: Tensor | None = None, region_names: Mapping[int, str] | None = None,
+               exclude: Mapping[str, Tensor] | None = None) -> dict:
+    """Per-map RMSE / max |error| of ``maps`` against ``gt`` over ``mask``.
+
+    Args:
+        maps, gt: name → ``[H, W, C]`` (the names of ``maps`` present in ``gt`` are compared; a gt
+            map of another size is resized with nearest sampling — flagged in the result).
+        mask: ``[H, W]`` bool, texels to include (e.g. the observed ones).
+        regions: optional ``[H, W]`` int region ids (same size as the maps); region_names: id → name.
+        exclude: optional name → ``[H, W]`` bool texels to leave out for that map (e.g. unobservable).
+
+    Returns:
+        ``{name: {"rmse", "max", "texels", "regions": {region name: {...}}}}``.
+    """
+    if mask.dim() != 2:
+        raise MetricsError(f"mask must be [H, W] bool, got {tuple(mask.shape)}")
+    out = {}
+    for name, m in maps.items():
+        if name not in gt:
+            continue
+        g = gt[name].to(m.dtype)
+        if g.shape[:2] != m.shape[:2]:
+            g = torch.nn.functional.interpolate(g.permute(2, 0, 1)[None], size=m.shape[:2], mode="nearest")[0]
+            g = g.permute(1, 2, 0)
+        if g.shape[-1] != m.shape[-1]:
+            g = g.expand(*g.shape[:2], m.shape[-1]) if g.shape[-1] == 1 else g.mean(-1, keepdim=True)
+        sel = mask.clone()
+        if exclude is not None and name in exclude:
+            sel &= ~exclude[name]
+        d = (m - g)
+        row = _stats(d[sel])
+        if regions is not None:
+            row["regions"] = {}
+            for rid in torch.unique(regions[sel]).tolist() if bool(sel.any()) else []:
+                r = sel & (regions == rid)
+                key = (region_names or {}).get(int(rid), str(int(rid)))
+                row["regions"][key] = _stats(d[r])
+        out[name] = row
+    return out
+
+
+def image_metrics(rendered: Tensor, photo: Tensor, mask: Tensor | None = None) -> dict:
+    """PSNR (dB) and SSIM of a re-rendered linear image against the photo, both ``[H, W, 3]``.
+
+    Non-finite photo pixels and pixels outside ``mask`` are set to 0 in both. PSNR uses the photo's
+    maximum as the peak (linear radiance has no fixed white); SSIM (kornia, 11×11 Gaussian window)
+    is computed on both images divided by that peak.
+    """
+    import kornia
+
+    if rendered.shape != photo.shape or rendered.dim() != 3:
+        raise MetricsError(f"rendered and photo must both be [H, W, 3], got {tuple(rendered.shape)} and "
+                           f"{tuple(photo.shape)}")
+    ok = torch.isfinite(photo).all(-1)
+    if mask is not None:
+        ok &= mask
+    a = torch.where(ok[..., None], rendered, torch.zeros_like(rendered)).float()
+    b = torch.where(ok[..., None], photo, torch.zeros_like(photo)).float()
+    peak = float(b.max().clamp_min(1e-12))
+    a, b = a / peak, b / peak
+    mse = float((a - b).square()[ok].mean()) if bool(ok.any()) else float("nan")
+    psnr = float(10 * torch.log10(torch.tensor(1.0 / max(mse, 1e-20)))) if mse == mse else float("nan")
+    A, B = a.permute(2, 0, 1)[None].clamp(0, 1), b.permute(2, 0, 1)[None].clamp(0, 1)
+    ssim = float(kornia.metrics.ssim(A, B, 11).mean())
+    return {"psnr": psnr, "ssim": ssim, "rmse_linear": (mse ** 0.5) * peak if mse == mse else float("nan")}

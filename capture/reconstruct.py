@@ -1,0 +1,356 @@
+"""The main job: dataset → material maps, confidence, re-renders and a report, written atomically.
+
+:func:`reconstruct` runs these stages (each timed in the report):
+
+1. ``load``: :func:`capture.dataset.load_dataset` (validates; :class:`DatasetError` names file and field).
+2. ``gbuffer``: one G-buffer per view (``supersample=1``) and :func:`renderer.shading.prepare`
+   (shadow rays) — geometry is known, so this happens once whatever the model and solver.
+3. ``observe``: :func:`capture.observations.observe_views` — valid samples only, drop reasons counted.
+4. ``select`` (``model="auto"`` only): fit the candidates cheapest first — ``lambert`` →
+   ``ggx-lambert`` → ``gotanda2012-layered`` (when registered) — on all views but a held-out
+   quarter, and stop as soon as a richer model lowers the held-out RMSE by less than
+   ``auto_gain`` (5 %). The chosen model is then refit on all views.
+5. ``solve``: :func:`capture.solvers.solve_fast` (default) or :func:`capture.solvers.solve_adam`.
+6. ``write``: maps (EXR linear + PNG), confidence/coverage maps, a grid of re-rendered views
+   beside the photos with error images, ``report.json``, ``summary.txt``, ``mesh.obj`` — into a
+   temporary folder next to ``out_dir`` that is renamed into place at the end, so a reader never
+   sees a half-written output and a failure leaves nothing behind.
+
+Unobservable parameters (decision): a parameter that no photo constrains in a texel (e.g.
+roughness and f0 where no highlight was seen) is *not* an error: it is filled from observable
+neighbours (pull-push), flagged in ``unobservable_<name>.png`` and in ``confidence_<name>.exr``
+(NaN), and counted in the report. Only when a parameter is unobservable in *every* observed texel
+does the report carry a warning (``warnings``) saying so, because then every value of that map is
+a fill, not a measurement.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from .observations import Observations, observe_views
+from .solvers import LOSSES, FitResult, SolverError, solve_adam, solve_fast
+
+__all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES"]
+
+#: Candidate models of ``model="auto"``, cheapest first (names not registered are skipped).
+AUTO_CANDIDATES = ("lambert", "ggx-lambert", "gotanda2012-layered")
+
+
+class ReconstructionError(ValueError):
+    """Bad reconstruction input: unknown model, existing output folder, nothing observable."""
+
+
+@dataclass
+class Report:
+    """What :func:`reconstruct` did (also written as ``report.json``)."""
+
+    model: str
+    solver: str
+    out_dir: str
+    times: dict = field(default_factory=dict)
+    samples: dict = field(default_factory=dict)
+    drops: dict = field(default_factory=dict)
+    coverage: dict = field(default_factory=dict)
+    skipped: dict = field(default_factory=dict)
+    selection: list = field(default_factory=list)
+    fit: dict = field(default_factory=dict)
+    errors: dict = field(default_factory=dict)
+    views: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _model(name):
+    from capture.dataset import model_from_spec
+
+    try:
+        return model_from_spec(name)
+    except ValueError as exc:
+        raise ReconstructionError(f"model {name!r}: {exc}") from None
+
+
+def _solve(model, obs: Observations, solver: str, loss: str, options: dict, progress) -> FitResult:
+    if solver == "fast":
+        keys = ("iterations", "grid", "schedule", "smoothness", "delta", "observable_threshold", "reproject")
+        return solve_fast(model, obs, loss=loss, progress=progress, **{k: v for k, v in options.items() if k in keys})
+    keys = ("iterations", "lr", "delta", "observable_threshold", "sampling")
+    return solve_adam(model, obs, loss=loss, progress=progress, **{k: v for k, v in options.items() if k in keys})
+
+
+def _heldout_rmse(model, fit: FitResult, obs: Observations) -> float:
+    with torch.no_grad():
+        pred = obs.predict(model, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}))
+    return float((pred - obs.radiance).square().mean().sqrt())
+
+
+def _grid_image(rows: list[list[Tensor]]) -> Tensor:
+    """Tile images ``[H, W, 3]`` (rows of equal count) into one, 2-px black gutters."""
+    H = max(im.shape[0] for r in rows for im in r)
+    W = max(im.shape[1] for r in rows for im in r)
+    n = max(len(r) for r in rows)
+    out = torch.zeros(len(rows) * (H + 2), n * (W + 2), 3)
+    for i, r in enumerate(rows):
+        for j, im in enumerate(r):
+            out[i * (H + 2):i * (H + 2) + im.shape[0], j * (W + 2):j * (W + 2) + im.shape[1]] = im.float()
+    return out
+
+
+def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool = False, solver: str = "fast",
+                loss: str = "l2", texture_size: int | None = None, dtype: torch.dtype = torch.float32,
+                progress: bool = True, auto_gain: float = 0.05, max_grid_views: int = 8, **options) -> Report:
+    """Recover the material maps of a dataset and write them to ``out_dir`` (see module docstring).
+
+    Args:
+        dataset_path: dataset folder (docs/dataset-format.md).
+        model: a registered model name, ``"a+b"``, or ``"auto"``.
+        out_dir: output folder; must not exist unless ``force`` (then it is replaced at the end).
+        solver: "fast" (per-texel LM) or "adam".
+        loss: "l2", "huber" or "l1".
+        texture_size: size T of the recovered T×T maps (default: the ground truth's, else 256).
+        dtype: dtype of the model evaluations (float32 default; float64 for precision studies).
+        progress: show a tqdm bar with the live loss.
+        auto_gain: ``model="auto"`` stops when the held-out RMSE drops by less than this fraction.
+        max_grid_views: views shown in the re-render grid.
+        **options: passed to the solver (iterations, grid, schedule, smoothness, delta, lr, ...).
+
+    Returns:
+        :class:`Report` (also ``report.json`` in ``out_dir``).
+
+    Raises:
+        DatasetError: the dataset does not validate. ReconstructionError: unknown model (lists the
+        names), output folder exists, bad solver/loss, no valid observation.
+    """
+    from capture.dataset import load_dataset
+    from renderer.gbuffer import render_gbuffer
+    from renderer.shading import prepare
+
+    times: dict[str, float] = {}
+    t = time.perf_counter()
+    if out_dir is None:
+        raise ReconstructionError("out_dir is required: the folder to write the maps and report into")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not force:
+        raise ReconstructionError(f"output folder {out_dir} exists; pass force=True (--force) to replace it "
+                                  f"or choose another folder")
+    if solver not in ("fast", "adam"):
+        raise ReconstructionError(f"solver must be 'fast' or 'adam', got {solver!r}")
+    if loss not in LOSSES:
+        raise ReconstructionError(f"loss must be one of {LOSSES}, got {loss!r}")
+    import materials
+
+    if model == "auto":
+        candidates = [m for m in AUTO_CANDIDATES if m in materials.available()]
+    else:
+        _model(model)  # unknown names fail before any work
+        candidates = [model]
+    ds = load_dataset(dataset_path)
+    times["load"] = time.perf_counter() - t
+
+    # -- geometry once --------------------------------------------------------------------------
+    t = time.perf_counter()
+    preps = []
+    for v in ds.views:
+        g = render_gbuffer(ds.mesh, v.camera, 1)
+        preps.append(prepare(g, ds.mesh, v.lights, shadows=True))
+    times["gbuffer"] = time.perf_counter() - t
+    t = time.perf_counter()
+    photos = ds.load_images(dtype=dtype)
+    if texture_size is None:
+        texture_size = int(next(iter(ds.gt.maps.values())).shape[0]) if ds.gt is not None else 256
+    all_lights = []
+    for v in ds.views:
+        for x in v.lights:
+            if all(x is not y for y in all_lights):
+                all_lights.append(x)
+    obs = observe_views(preps, [p.radiance for p in photos], (texture_size, texture_size), exposure=1.0,
+                        clipped=[p.saturated for p in photos], lights=all_lights, dtype=dtype)
+    times["observe"] = time.perf_counter() - t
+    n_pix = sum(v.camera.width * v.camera.height for v in ds.views)
+    report = Report(model="", solver=solver, out_dir=str(out_dir))
+    report.samples = {"pixels": n_pix, "valid": obs.n_samples, "pairs": obs.n_pairs,
+                      "lights": len(all_lights), "views": len(ds.views)}
+    report.drops = dict(obs.drops)
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(desc="solve", unit="it", leave=False)
+
+    def cb(stage, it, cost):
+        if bar is not None:
+            bar.set_postfix_str(f"{stage} loss {cost:.3e}")
+            bar.update(1)
+
+    # -- model selection --------------------------------------------------------------------------
+    t = time.perf_counter()
+    if len(candidates) > 1:
+        n = len(ds.views)
+        held = list(range(3, n, 4)) if n >= 4 else []
+        train_obs = obs.select_views([i for i in range(n) if i not in held]) if held else obs
+        test_obs = obs.select_views(held) if held else obs
+        best_err, chosen = math.inf, candidates[0]
+        for name in candidates:
+            m = _model(name)
+            ts = time.perf_counter()
+            fit = _solve(m, train_obs, solver, loss, options, cb)
+            err = _heldout_rmse(m, fit, test_obs)
+            report.selection.append({"model": name, "heldout_rmse": err, "seconds": time.perf_counter() - ts,
+                                     "params": list(m.param_names)})
+            if err < best_err * (1 - auto_gain):
+                best_err, chosen = err, name
+            else:
+                report.selection[-1]["stopped"] = "held-out error did not drop by more than " \
+                                                  f"{auto_gain:.0%}; richer models skipped"
+                break
+        skipped = [c for c in candidates if c not in [s["model"] for s in report.selection]]
+        report.skipped["models_not_tried"] = skipped
+        model = chosen
+    times["select"] = time.perf_counter() - t
+    mdl = _model(model)
+    report.model = model
+    unused = sorted(set(materials.CANONICAL) - set(mdl.param_names))
+    report.skipped["parameters_not_allocated"] = unused
+
+    # -- solve ----------------------------------------------------------------------------------
+    t = time.perf_counter()
+    try:
+        fit = _solve(mdl, obs, solver, loss, options, cb)
+    except SolverError as exc:
+        raise ReconstructionError(str(exc)) from None
+    finally:
+        if bar is not None:
+            bar.close()
+    times["solve"] = time.perf_counter() - t
+    observed = fit.observed
+    spt, vpt = obs.samples_per_texel(), obs.views_per_texel()
+    report.coverage = {"texels": int(observed.numel()), "observed": int(observed.sum()),
+                       "unobserved_filled": int((~observed).sum()),
+                       "unobservable": {k: int(v.sum()) for k, v in fit.unobservable.items()},
+                       "samples_per_observed_texel": float(spt[observed].float().mean()) if bool(observed.any()) else 0}
+    for k, v in fit.unobservable.items():
+        if bool(observed.any()) and int(v.sum()) == int(observed.sum()):
+            report.warnings.append(f"parameter '{k}' is unobservable in every observed texel (e.g. no highlight "
+                                   f"seen anywhere): its map is filled with defaults, not measured")
+    report.fit = {"iterations": fit.iterations, "final_cost": fit.history[-1] if fit.history else None,
+                  "seconds": fit.time_s, **{k: v for k, v in fit.info.items() if k != "accepted"}}
+    report.skipped["pixels_not_evaluated"] = {k: v for k, v in obs.drops.items()}
+    report.skipped["pixel_fraction_skipped"] = 1 - obs.n_samples / max(n_pix, 1)
+
+    # -- metrics --------------------------------------------------------------------------------
+    t = time.perf_counter()
+    from .metrics import image_metrics, map_errors
+
+    if ds.gt is not None:
+        report.errors["maps"] = map_errors(fit.maps, ds.gt.maps, observed, ds.gt.regions, ds.gt.region_names)
+        report.errors["maps_observable"] = map_errors(fit.maps, ds.gt.maps, observed, None, None,
+                                                      exclude=fit.unobservable)
+        report.errors["gt_model"] = ds.gt.model
+    renders = []
+    with torch.no_grad():
+        pred = obs.predict(mdl, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}))
+    for i, v in enumerate(ds.views):
+        H, W = v.camera.height, v.camera.width
+        img = torch.zeros(H * W, 3, dtype=pred.dtype)
+        sel = obs.view == i
+        img[obs.pixel[sel]] = pred[sel]
+        img = img.reshape(H, W, 3)
+        mask = torch.zeros(H * W, dtype=torch.bool)
+        mask[obs.pixel[sel]] = True
+        mask = mask.reshape(H, W)
+        m = image_metrics(img, photos[i].radiance, mask)
+        report.views.append({"view": i, **m})
+        renders.append((img, mask))
+    times["metrics"] = time.perf_counter() - t
+
+    # -- write ----------------------------------------------------------------------------------
+    t = time.perf_counter()
+    _write_outputs(out_dir, ds, fit, obs, renders, photos, report, times, force, max_grid_views, spt, vpt)
+    return report
+
+
+def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, report: Report, times, force,
+                   max_grid_views, spt: Tensor, vpt: Tensor) -> None:
+    from renderer.imageio import write_exr, write_png
+
+    t = time.perf_counter()
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp"))
+    try:
+        for k, m in fit.maps.items():
+            write_exr(tmp / f"{k}.exr", m.float())
+            png = m if m.shape[-1] in (1, 3) else m[..., :3]
+            if math.isfinite(float(m.max())) and float(m.max()) > 1:
+                png = png / float(png.max())
+            write_png(tmp / f"{k}.png", png.float().clamp(0, 1),
+                      transfer="srgb" if k == "albedo" or k == "f0" else "linear")
+            write_exr(tmp / f"confidence_{k}.exr", fit.confidence[k].float(), allow_nonfinite=True)
+            write_png(tmp / f"unobservable_{k}.png", fit.unobservable[k].float()[..., None], transfer="linear")
+        write_exr(tmp / "coverage.exr", torch.stack([spt.float(), vpt.float(), fit.observed.float()], -1))
+        # re-render grid: photo | render | |error| ×4, for up to max_grid_views views
+        rows = []
+        peak = max(float(torch.nan_to_num(p.radiance, nan=0.0, posinf=0.0).max()) for p in photos) or 1.0
+        for i, (img, mask) in enumerate(renders[:max_grid_views]):
+            ph = torch.nan_to_num(photos[i].radiance.float(), nan=0.0, posinf=0.0)
+            err = ((img.float() - ph).abs() * 4) * mask[..., None]
+            rows.append([ph / peak, img.float() / peak, err / peak])
+        write_png(tmp / "views.png", _grid_image(rows).clamp(0, 1), transfer="srgb")
+        mesh_src = Path(ds.root) / ds.mesh_file
+        if mesh_src.suffix.lower() == ".obj":
+            shutil.copyfile(mesh_src, tmp / "mesh.obj")
+        else:
+            from renderer.mesh import save_mesh
+
+            save_mesh(ds.mesh, tmp / "mesh.obj")
+        times["write"] = time.perf_counter() - t
+        times["total"] = sum(v for k, v in times.items() if k != "total")
+        report.times = dict(times)
+        (tmp / "report.json").write_text(json.dumps(report.to_dict(), indent=2, default=str))
+        (tmp / "summary.txt").write_text(_summary(report))
+        if out_dir.exists():
+            if not force:
+                raise ReconstructionError(f"output folder {out_dir} appeared while reconstructing; not replaced")
+            old = out_dir.parent / f".{out_dir.name}.old.{os.getpid()}"
+            os.replace(out_dir, old)
+            os.replace(tmp, out_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _summary(r: Report) -> str:
+    lines = [f"model {r.model}  solver {r.solver}  total {r.times.get('total', 0):.1f} s  "
+             + "  ".join(f"{k} {v:.1f}s" for k, v in r.times.items() if k != "total"),
+             f"samples {r.samples.get('valid')} valid of {r.samples.get('pixels')} pixels; dropped "
+             + ", ".join(f"{k} {v}" for k, v in r.drops.items() if v),
+             f"texels observed {r.coverage.get('observed')} / {r.coverage.get('texels')}; unobservable "
+             + ", ".join(f"{k} {v}" for k, v in r.coverage.get("unobservable", {}).items())]
+    if r.selection:
+        lines.append("auto: " + " → ".join(f"{s['model']} (held-out RMSE {s['heldout_rmse']:.4g})"
+                                           for s in r.selection))
+    if "maps" in r.errors:
+        lines.append("errors vs ground truth on observed texels (RMSE / max):")
+        for k, v in r.errors["maps"].items():
+            lines.append(f"  {k:12s} {v['rmse']:.5f} / {v['max']:.5f}")
+    if r.views:
+        ps = [v["psnr"] for v in r.views]
+        lines.append(f"re-render PSNR {min(ps):.1f}–{max(ps):.1f} dB, SSIM mean "
+                     f"{sum(v['ssim'] for v in r.views) / len(r.views):.4f}")
+    lines.extend(f"WARNING: {w}" for w in r.warnings)
+    return "\n".join(lines) + "\n"

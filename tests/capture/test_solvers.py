@@ -1,0 +1,122 @@
+"""Solver core on observations built directly from Angles + a model (no renderer)."""
+
+import pytest
+import torch
+
+import materials
+from capture.observations import synthetic_observations
+from capture.solvers import Layout, SolverError, pull_push, solve_adam, solve_fast
+
+
+def _ggx_lambert():
+    return materials.SumModel(materials.get("lambert"), materials.get("microfacet"))
+
+
+def _maps(H, W, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return {"albedo": torch.rand(H, W, 3, generator=g, dtype=torch.float64) * 0.8 + 0.1,
+            "f0": torch.rand(H, W, 3, generator=g, dtype=torch.float64) * 0.5 + 0.02,
+            "roughness": torch.rand(H, W, 1, generator=g, dtype=torch.float64) * 0.7 + 0.15}
+
+
+def test_reparam_roundtrip_and_range():
+    model = _ggx_lambert()
+    lay = Layout.of(model)
+    assert lay.P == 7
+    p = {k: v.reshape(-1, v.shape[-1]) for k, v in _maps(4, 4).items()}
+    back = lay.unpack(lay.pack(p))
+    for k in p:
+        torch.testing.assert_close(back[k], p[k], rtol=0, atol=1e-12)
+    huge = lay.unpack(torch.full((3, 7), 1e4, dtype=torch.float64))
+    assert all(bool(((v >= 0) & (v <= 1)).all()) for v in huge.values())
+
+
+def test_fast_recovers_ggx_lambert_to_float64_precision():
+    # measured: max |error| 5e-14 on every map (16 samples per texel, half near the mirror direction)
+    model = _ggx_lambert()
+    gt = _maps(8, 8)
+    obs = synthetic_observations(model, gt, samples_per_texel=16)
+    res = solve_fast(model, obs)
+    for k in gt:
+        assert (res.maps[k].double() - gt[k]).abs().max() < 1e-6, k
+        assert not res.unobservable[k].any()
+    assert res.history[-1] < 1e-20
+
+
+def test_lambert_closed_form_is_exact_in_one_solve():
+    model = materials.get("lambert")
+    g = torch.Generator().manual_seed(3)
+    gt = {"albedo": torch.rand(6, 6, 3, generator=g, dtype=torch.float64) * 0.9 + 0.05}
+    obs = synthetic_observations(model, gt, samples_per_texel=4)
+    res = solve_fast(model, obs, iterations=0)
+    assert (res.maps["albedo"] - gt["albedo"]).abs().max() < 1e-6
+
+
+def test_errors_shrink_with_more_samples_under_noise():
+    model = _ggx_lambert()
+    gt = _maps(6, 6, seed=1)
+    errs = []
+    for spt in (8, 64):
+        obs = synthetic_observations(model, gt, samples_per_texel=spt, noise=0.02, seed=2)
+        res = solve_fast(model, obs, loss="huber")
+        errs.append(float((res.maps["albedo"].double() - gt["albedo"]).square().mean().sqrt()))
+    assert errs[1] < 0.7 * errs[0], errs
+
+
+def test_roughness_unobservable_without_highlights():
+    model = _ggx_lambert()
+    gt = _maps(4, 4)
+    gt["roughness"] = torch.full((4, 4, 1), 0.1, dtype=torch.float64)   # sharp lobe, never seen
+    obs = synthetic_observations(model, gt, samples_per_texel=16, highlight_fraction=0.0)
+    res = solve_fast(model, obs)
+    # measured: 8 of the 16 texels flagged (the others see the lobe's tail at n·h ≈ 0.99)
+    assert res.unobservable["roughness"].float().mean() >= 0.5
+    assert torch.isnan(res.confidence["roughness"][res.unobservable["roughness"]]).all()
+    assert not res.unobservable["albedo"].any()
+
+
+def test_adam_decreases_loss_and_is_slower_than_fast():
+    model = _ggx_lambert()
+    gt = _maps(4, 4)
+    obs = synthetic_observations(model, gt, samples_per_texel=16).to(dtype=torch.float32)
+    adam = solve_adam(model, obs, iterations=60, lr=0.05)
+    fast = solve_fast(model, obs)
+    assert adam.history[-1] < 0.5 * adam.history[0]
+    err = lambda r: float((r.maps["albedo"].double() - gt["albedo"]).abs().max())  # noqa: E731
+    assert err(fast) < err(adam)
+
+
+def test_pull_push_keeps_known_and_fills_holes():
+    x = torch.arange(16.0).reshape(4, 4, 1)
+    known = torch.zeros(4, 4, dtype=torch.bool)
+    known[0, 0] = known[3, 3] = True
+    out = pull_push(x, known)
+    assert out[0, 0, 0] == 0 and out[3, 3, 0] == 15
+    assert torch.isfinite(out).all() and out.min() >= 0 and out.max() <= 15
+
+
+def test_bad_inputs():
+    model = _ggx_lambert()
+    obs = synthetic_observations(model, _maps(2, 2), samples_per_texel=4)
+    with pytest.raises(SolverError, match="loss"):
+        solve_fast(model, obs, loss="l3")
+    with pytest.raises(SolverError, match="schedule"):
+        solve_fast(model, obs, schedule="random")
+    with pytest.raises(SolverError, match="init"):
+        solve_fast(model, obs, init={"absorption": torch.zeros(2, 2, 3)})
+
+
+def test_staged_schedule_and_smoothness_run():
+    model = _ggx_lambert()
+    gt = _maps(4, 4)
+    obs = synthetic_observations(model, gt, samples_per_texel=16)
+    res = solve_fast(model, obs, schedule="staged", iterations=45)
+    assert res.info["stages"] == ["scale", "shape", "all"]
+    # measured: the staged schedule ends at a higher cost than the joint one on this data (albedo
+    # max error 0.30 vs 5e-14); it is an option for robust fits of measured data, not the default
+    assert res.history[-1] < 0.5 * res.history[0]
+    smooth = solve_fast(model, obs, smoothness=1e-3, iterations=20)
+    assert all(torch.isfinite(m).all() for m in smooth.maps.values())
+    # the prior pulls neighbours together: the map's total variation does not grow
+    tv = lambda m: (m[1:] - m[:-1]).abs().sum() + (m[:, 1:] - m[:, :-1]).abs().sum()  # noqa: E731
+    assert tv(smooth.raw["roughness"]) <= tv(res.raw["roughness"]) * 1.001
