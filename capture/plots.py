@@ -54,7 +54,8 @@ def plot_lobes(out_png: str | Path, names: list[str] | None = None, views=(0.0, 
     for ax in list(axes.flat)[len(names):]:
         ax.set_visible(False)
     axes.flat[0].legend(fontsize=6, loc="lower left")
-    fig.suptitle("π·f_r·cos θ_l in the plane of incidence (viewer on the right at θv, mirror direction on the left); albedo 0.5, f0 0.04, r 0.4",
+    fig.suptitle("π·f_r·cos θ_l in the plane of incidence (viewer on the right at θv, mirror direction on the left); "
+                 "albedo 0.5, f0 0.04, r 0.4",
                  fontsize=10)
     fig.tight_layout()
     out_png = Path(out_png)

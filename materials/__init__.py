@@ -30,6 +30,7 @@ from . import microfacet_diffuse  # noqa: E402,F401  isort: skip
 from . import layered  # noqa: E402,F401  isort: skip
 from . import catalog  # noqa: E402,F401  isort: skip
 from . import presets  # noqa: E402,F401  isort: skip
+from . import measured  # noqa: E402,F401  isort: skip
 
 __all__ = [
     "Angles", "CANONICAL", "Environment", "HemisphereLight", "Model", "ParamSpec", "SHLight",

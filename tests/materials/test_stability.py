@@ -8,8 +8,10 @@ import torch
 
 import materials
 from materials import validation
+from materials.measured import data_dir
 
-MODELS = sorted(materials.available())
+# "measured" needs the NBRDF weights of ../shared/data/merl (present in CI beside the clone).
+MODELS = sorted(n for n in materials.available() if n != "measured" or data_dir().exists())
 
 
 def test_quadrature_integrates_cosine_and_constant():
