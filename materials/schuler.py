@@ -37,8 +37,15 @@ OCR/print reading of the specular hemisphere term: the paper prints the interpol
 reflection vector pointing down gives 2 E_lower − E_upper (negative radiance when
 E_upper > 2 E_lower) and a horizontal one gives E_lower alone. We read it, by analogy with the
 diffuse weight (1 + N·z)/2, as t = (1 + clamp(R·z/(1 − g), −1, 1))/2: R up → E_upper, R down →
-E_lower, horizontal → the mean, with a transition that sharpens as g → 1. F(g N·V) is taken as
-printed: at g = 0 it is min(60 K_s, 1) for every view (see docs/models-specular.md).
+E_lower, horizontal → the mean, with a transition that sharpens as g → 1.
+
+The Fresnel factor printed as F(g N·V) is, read literally, min(60 K_s, 1) for every view at g = 0:
+a fully rough dielectric would mirror the whole environment, the opposite of the paper's own
+sentence ("a simplified Fresnel term, scaled such that the highest values are only reached for
+smooth surfaces"). The OCR has probably lost an operator. Decision (docs/models-specular.md):
+``hemisphere_fresnel="scaled"`` (default) scales the Fresnel rise by g,
+lerp(K_s, min(60 K_s, 1), g (1 − N·V)⁴) — K_s for rough surfaces, the full lerp Fresnel for g = 1 —
+which is what the sentence describes; ``hemisphere_fresnel="printed"`` keeps F(g·N·V).
 """
 
 from __future__ import annotations
@@ -180,9 +187,15 @@ def schuler_hemisphere_diffuse(env: HemisphereLight, n: Tensor, v: Tensor, albed
     return torch.where(visible, albedo * INV_PI * e, torch.zeros_like(e))
 
 
-def schuler_hemisphere_specular(env: HemisphereLight, n: Tensor, v: Tensor, f0: Tensor, roughness: Tensor) -> Tensor:
+HEMISPHERE_FRESNEL = ("scaled", "printed")
+
+
+def schuler_hemisphere_specular(env: HemisphereLight, n: Tensor, v: Tensor, f0: Tensor, roughness: Tensor,
+                                fresnel: str = "scaled") -> Tensor:
     """Specular radiance under two hemispheres (Schüler, I_specular hemisphere, divided by π):
-    F(g N·V)/π · lerp(E_lower, E_upper, (1 + clamp(R·z/(1 − g), −1, 1))/2), ``[..., 3]``.
+    F/π · lerp(E_lower, E_upper, (1 + clamp(R·z/(1 − g), −1, 1))/2), ``[..., 3]``, with
+    F = lerp(K_s, min(60 K_s, 1), g (1 − N·V)⁴) for ``fresnel="scaled"`` (default) or the printed
+    F(g N·V) = lerp(K_s, min(60 K_s, 1), (1 − g N·V)⁴) for ``"printed"`` (module docstring).
 
     R = 2 (N·V) N − V; g = roughness_to_glossiness(r) clamped to [0, 1]; F = Schüler's lerp Fresnel.
     See the module docstring for the reading of the interpolation weight. 0 where n·v ≤ 0.
@@ -197,7 +210,14 @@ def schuler_hemisphere_specular(env: HemisphereLight, n: Tensor, v: Tensor, f0: 
     t = 0.5 * (1.0 + (rz / (1.0 - glos).clamp_min(ONE_MINUS_G_EPS)).clamp(-1.0, 1.0))
     lo, hi = env.lower.to(r), env.upper.to(r)
     e = lo + t * (hi - lo)
-    out = fresnel_schuler(f0, glos * nv.clamp(0.0, 1.0)) * INV_PI * e
+    if fresnel not in HEMISPHERE_FRESNEL:
+        raise ValueError(f"unknown hemisphere Fresnel reading {fresnel!r}; valid: {', '.join(HEMISPHERE_FRESNEL)}")
+    if fresnel == "printed":
+        fres = fresnel_schuler(f0, glos * nv.clamp(0.0, 1.0))
+    else:
+        rise = glos * (1.0 - nv.clamp(0.0, 1.0)).pow(4)
+        fres = f0 + (torch.clamp(60.0 * f0, max=1.0) - f0) * rise
+    out = fres * INV_PI * e
     return torch.where(nv > 0, out, torch.zeros_like(out))
 
 
@@ -214,10 +234,14 @@ class Schuler(Model):
     Parameters: ``albedo`` (K_diffuse), ``f0`` (K_specular), ``roughness`` (g = roughness_to_glossiness).
     """
 
-    def __init__(self, variant: str = "optimized"):
+    def __init__(self, variant: str = "optimized", hemisphere_fresnel: str = "scaled"):
         if variant not in VARIANTS:
             raise ValueError(f"unknown Schüler variant {variant!r}; valid choices: {', '.join(VARIANTS)}")
+        if hemisphere_fresnel not in HEMISPHERE_FRESNEL:
+            valid = ", ".join(HEMISPHERE_FRESNEL)
+            raise ValueError(f"unknown hemisphere_fresnel {hemisphere_fresnel!r}; valid: {valid}")
         self.variant = variant
+        self.hemisphere_fresnel = hemisphere_fresnel
         self.params = (ALBEDO, replace(F0, linear=variant == "optimized"), ROUGHNESS)
 
     def brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
@@ -229,4 +253,4 @@ class Schuler(Model):
         if not isinstance(env, HemisphereLight):
             return super().environment(env, n, v, p)
         return (schuler_hemisphere_diffuse(env, n, v, p["albedo"])
-                + schuler_hemisphere_specular(env, n, v, p["f0"], p["roughness"]))
+                + schuler_hemisphere_specular(env, n, v, p["f0"], p["roughness"], self.hemisphere_fresnel))

@@ -171,9 +171,13 @@ def test_hemisphere_uniform_environment_is_mirror_of_reflectance_f():
     p = {"albedo": t64(0.5, 0.3, 0.1), "f0": t64(0.04, 0.04, 0.04), "roughness": t64(0.5)}
     glos = rough.roughness_to_glossiness(p["roughness"]).item()
     nv = float((n * v).sum())
-    out = materials.get("schuler").environment(env, n, v, p)
+    out = materials.get("schuler", hemisphere_fresnel="printed").environment(env, n, v, p)
     spec = fresnel_schuler(p["f0"], t64(glos * nv)[:, None]) * 2.0 / math.pi
     torch.testing.assert_close(out, p["albedo"] * 2.0 / math.pi + spec)
+    # default reading: the rise is scaled by g, F = K_s + (min(60 K_s, 1) − K_s) g (1 − n·v)⁴
+    out = materials.get("schuler").environment(env, n, v, p)
+    f_scaled = 0.04 + (min(60 * 0.04, 1.0) - 0.04) * glos * (1 - nv) ** 4
+    torch.testing.assert_close(out, (p["albedo"] * 2.0 / math.pi + f_scaled * 2.0 / math.pi).expand_as(out))
     lam = materials.get("lambert").environment(env, n, v, {"albedo": p["albedo"]})
     torch.testing.assert_close(sc.schuler_hemisphere_diffuse(env, n, v, p["albedo"]), lam)
 
@@ -193,11 +197,16 @@ def test_hemisphere_specular_weight():
     assert spec(env, n_up, v_up, f0, sharp)[0, 0].item() == pytest.approx(1 / math.pi)  # sky
     assert spec(env, n_side, v_side, f0, sharp)[0, 0].item() == pytest.approx(0.0, abs=1e-12)  # ground
     assert spec(env, n_45, v_45, f0, sharp)[0, 0].item() == pytest.approx(0.5 / math.pi)  # horizon: mean
-    # g = 0: t = (1 + R·z)/2, F = min(60 K_s, 1) for every view (the paper's F(g N·V) at g = 0)
+    # g = 0: t = (1 + R·z)/2; printed F(g N·V) = min(60 K_s, 1) for every view, the scaled default F = K_s
     rz = -math.sin(a)
     assert spec(env, n_side, v_side, f0, rough_r)[0, 0].item() == pytest.approx((1 + rz) / 2 / math.pi)
-    f_low = spec(env, n_up, v_up, t64(0.04, 0.01, 0.0), rough_r)[0] * math.pi / ((1 + math.cos(a)) / 2)
+    ks = t64(0.04, 0.01, 0.0)
+    f_low = spec(env, n_up, v_up, ks, rough_r, fresnel="printed")[0] * math.pi / ((1 + math.cos(a)) / 2)
     torch.testing.assert_close(f_low, t64(1.0, 0.6, 0.0))
+    f_low = spec(env, n_up, v_up, ks, rough_r)[0] * math.pi / ((1 + math.cos(a)) / 2)
+    torch.testing.assert_close(f_low, ks)
+    with pytest.raises(ValueError, match="valid: scaled, printed"):
+        spec(env, n_up, v_up, ks, rough_r, fresnel="nope")
     # never negative, whatever the irradiances (the literal lerp(…, clamp(…, −1, 1)) would be)
     env2 = hemi((5.0, 5.0, 5.0), (1.0, 1.0, 1.0))
     assert (spec(env2, n_side, v_side, f0, sharp) >= 0).all()
