@@ -49,7 +49,7 @@ def _cmd_synth(args) -> int:
     cfg = small_scene(**over) if args.config == "small" else default_scene(**over)
     t0 = time.perf_counter()
     out = make_synthetic(cfg, args.out, overwrite=args.overwrite)
-    print(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
+    print(f"wrote {out} ({cfg.n_views} views) in {time.perf_counter() - t0:.1f} s")
     return 0
 
 
@@ -100,8 +100,8 @@ def _cmd_export(args) -> int:
 
     side = export_atlas_dirs(args.recon_dirs, args.out, atlas_size=args.size, gutter=args.gutter, bits=args.bits,
                              fmt=args.format, transfer=args.transfer, force=args.force, glb=not args.no_glb)
-    print(f"wrote atlas {args.out}: {len(side.get('materials', []))} material(s), "
-          f"{side.get('resolution')} ({side.get('encoding', {})})")
+    size = side["size"]
+    print(f"wrote {args.out} ({size['width']}x{size['height']}, {len(side['materials'])} material(s))")
     return 0
 
 
