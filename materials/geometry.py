@@ -145,3 +145,20 @@ def guarded_pow(base: Tensor, exponent: Tensor | float, eps: float = 1e-12) -> T
     ok = base > eps
     safe = torch.where(ok, base, torch.ones_like(base))
     return torch.where(ok, safe.pow(exponent), torch.zeros_like(safe))
+
+
+def check_angles(g, fn: str) -> None:
+    """Raise ``TypeError`` naming ``fn`` unless ``g`` is an :class:`Angles`."""
+    if not isinstance(g, Angles):
+        raise TypeError(f"{fn}: g must be a materials.Angles, got {type(g).__name__}; build one with "
+                        f"Angles.from_vectors(n, l, v) or Angles.from_cosines(nl, nv, lv)")
+
+
+def as_param(x, like: Tensor, name: str, fn: str) -> Tensor:
+    """A lobe argument as a tensor ``[..., C]``: floats become ``[1]`` tensors of ``like``'s dtype and
+    device, 0-d tensors gain a dimension; anything else raises ``TypeError`` naming ``fn`` and ``name``."""
+    if isinstance(x, (int, float)):
+        return torch.full((1,), float(x), dtype=like.dtype, device=like.device)
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{fn}: {name} must be a tensor or a float, got {type(x).__name__}")
+    return x.reshape(1) if x.dim() == 0 else x

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .geometry import Angles
+from .geometry import Angles, as_param, check_angles
 from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
 from .roughness import roughness_to_alpha
@@ -53,18 +53,8 @@ CHUNK_ELEMENTS = 1 << 21
 VIS_FLOOR = 1e-9
 
 
-def _check_angles(g, fn: str) -> None:
-    if not isinstance(g, Angles):
-        raise TypeError(f"{fn}: g must be a materials.Angles, got {type(g).__name__}; build one with "
-                        f"Angles.from_vectors(n, l, v) or Angles.from_cosines(nl, nv, lv)")
-
-
-def _t(x, like: Tensor, name: str, fn: str) -> Tensor:
-    if isinstance(x, (int, float)):
-        return torch.full((1,), float(x), dtype=like.dtype, device=like.device)
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{fn}: {name} must be a tensor or a float, got {type(x).__name__}")
-    return x.reshape(1) if x.dim() == 0 else x
+_check_angles = check_angles
+_t = as_param
 
 
 def _sqrt0(x: Tensor) -> Tensor:

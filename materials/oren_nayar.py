@@ -62,7 +62,7 @@ import torch
 from torch import Tensor
 
 from .environment import Environment, SHLight
-from .geometry import Angles
+from .geometry import Angles, as_param, check_angles
 from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
 from .roughness import roughness_to_shininess, roughness_to_sigma
@@ -78,20 +78,8 @@ RATIO_FLOOR = 1e-12
 
 
 # -- helpers ------------------------------------------------------------------------------------
-def _check_angles(g, fn: str) -> None:
-    if not isinstance(g, Angles):
-        raise TypeError(f"{fn}: g must be a materials.Angles, got {type(g).__name__}; build one with "
-                        f"Angles.from_vectors(n, l, v) or Angles.from_cosines(nl, nv, lv)")
-
-
-def _t(x, like: Tensor, name: str, fn: str) -> Tensor:
-    if isinstance(x, (int, float)):
-        return torch.full((1,), float(x), dtype=like.dtype, device=like.device)
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{fn}: {name} must be a tensor or a float, got {type(x).__name__}")
-    if x.dim() == 0:
-        x = x.reshape(1)
-    return x
+_check_angles = check_angles
+_t = as_param
 
 
 def _front(g: Angles) -> Tensor:
