@@ -231,6 +231,7 @@ def fresnel_conductor(eta, k, cos) -> Tensor:
     R_s = (a²+b² + c² − 2ac)/(a²+b² + c² + 2ac),
     R_p = R_s (c²(a²+b²) + s⁴ − 2acs²)/(c²(a²+b²) + s⁴ + 2acs²), F = (R_s + R_p)/2.
 
+    a² is evaluated as t1²/(2(a²+b² − t0)) with t1 = 2ηκ where t0 < 0 (no cancellation).
     At normal incidence F = ((η − 1)² + κ²)/((η + 1)² + κ²). With κ = 0 it equals
     :func:`fresnel_dielectric` (total internal reflection included). Written with ``hypot`` so
     that large κ (up to ~1e18 in float32) does not overflow.
@@ -259,7 +260,11 @@ def fresnel_conductor(eta, k, cos) -> Tensor:
     t1 = 2.0 * eta * k
     ok = (t0.abs() + t1.abs()) > _TINY
     ab2 = torch.where(ok, torch.hypot(torch.where(ok, t0, torch.ones_like(t0)), t1), torch.zeros_like(t0))
-    a = _sqrt0(0.5 * (ab2 + t0))
+    # a² = (|z| + t0)/2 cancels when t0 < 0 (η < 1 past the critical angle, small κ); there the
+    # algebraically equal t1²/(2(|z| − t0)) keeps float32 within a few ulps of float64.
+    neg = t0 < 0
+    a2 = torch.where(neg, 0.5 * t1 * t1 / torch.where(neg, ab2 - t0, torch.ones_like(t0)), 0.5 * (ab2 + t0))
+    a = _sqrt0(a2)
     two_ac = 2.0 * a * c
     rs = _div(ab2 + c2 - two_ac, ab2 + c2 + two_ac, 1.0)
     t3 = c2 * ab2 + s2 * s2
