@@ -26,6 +26,8 @@ import materials  # noqa: E402
 import materials.measured as measured  # noqa: E402
 from capture import brdf_fit  # noqa: E402
 
+#: Everything from this line on in an existing measured-fits.md is hand-written and kept when the file is re-generated.
+KEEP_MARKER = "<!-- hand-written below: kept by scripts/fit_measured.py -->"
 FIGURE_MATERIALS = ("two-layer-silver", "violet-rubber", "nickel", "red-fabric2")
 #: Directional lights of the sphere figure (unit, world space, viewer along +z, y up): glancing from the NE,
 #: grazing from the SW and slightly behind the sphere.
@@ -172,8 +174,13 @@ def write_markdown(path: Path, results, models, settings, figures, seconds) -> N
             lines.append(f"| {mat} | " + " | ".join(cells) + " |")
         lines.append("")
     path.parent.mkdir(parents=True, exist_ok=True)
+    text = "\n".join(lines) + "\n"
+    if path.is_file():  # keep the hand-written sections below the marker (e.g. the capture benchmark)
+        old = path.read_text()
+        if KEEP_MARKER in old:
+            text += "\n" + old[old.index(KEEP_MARKER):]
     tmp = path.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
+    tmp.write_text(text)
     tmp.replace(path)
 
 
@@ -188,6 +195,7 @@ def main(argv=None) -> int:
     ap.add_argument("--procedure", choices=("joint", "nielsen"), default="joint")
     ap.add_argument("--size", type=int, default=96, help="sphere size in pixels")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--partial", action="store_true", help="rewrite the markdown after every material")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
@@ -228,6 +236,9 @@ def main(argv=None) -> int:
             except ValueError:
                 rel = png.resolve()
             figures.append((mat, rel.as_posix()))
+        if args.partial:  # rewrite after every material so that an interrupted run leaves its table
+            write_markdown(args.out / "measured-fits.md", results, models, settings, figures,
+                           time.perf_counter() - t0)
     write_markdown(args.out / "measured-fits.md", results, models, settings, figures, time.perf_counter() - t0)
     print(f"wrote {args.out / 'measured-fits.md'}")
     return 0
