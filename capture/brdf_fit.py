@@ -41,6 +41,18 @@ stages (ii)-(iii) do not recover. Restarts, not staging, are what make the fit r
 Adam then L-BFGS. Robustness to the initial guess: ``restarts`` runs from spread initial shape parameters (the k-th
 of K puts each finite-range shape parameter at fraction (k + 1)/(K + 1) of its range); the lowest objective wins.
 
+Microfacet models that score near Lambert on metals (checked, not a fitter defect)
+----------------------------------------------------------------------------------
+Cook-Torrance and Schüler fitted to the NBRDF fit of MERL nickel reach an all-angle L1 of 0.97-0.99 (Lambert:
+1.00). Longer runs (600 Adam + 200 L-BFGS steps, 5 restarts) and good starts (roughness 0.15, f0 0.9) end at
+the same optimum (0.9662 for Cook-Torrance from every start that does not collapse to f0 → 0), so it is not a
+local minimum. Fitted without the grazing samples (``exclude_grazing=True``) the same models reach L1 0.35
+(Cook-Torrance) and 0.37 (Schüler) away from grazing with a narrow lobe (roughness 0.22 / 0.17), but that lobe
+over-predicts the grazing samples by 20-70× (grazing-only L1 21 and 69: at θ_h ≈ 0 and θ_d → 90° the Fresnel
+term → 1 and 1/(4 n·l n·v) grows while the network stays bounded), so on the all-angle objective the broad,
+nearly-off lobe wins. GGX-Lambert shows the same (0.29 without grazing vs 0.79 all angles).
+``tests/capture/test_brdf_fit.py`` keeps this as a test.
+
 Sampling (:func:`make_samples`)
 -------------------------------
 ``"rusinkiewicz"`` (default): jittered stratified samples of (θ_h, θ_d, φ_d) on MERL's own grid spacing — θ_h =

@@ -305,9 +305,11 @@ def capture_benchmark(config: MeasuredSceneConfig | None = None, models: Sequenc
         ``error`` (a message if the reconstruction failed, else None) and ``regions``: per material,
         ``params`` (captured medians), ``fit`` (fit_brdf's), ``l1_capture`` and ``l1_fit`` (BRDF-space
         relative L1 of each parameter set against the material; ``*_no_grazing`` without θ > 80°) and
-        ``observed_texels``.
+        ``observed_texels`` and ``observable_fraction`` (per parameter, the share of the region's observed
+        texels where the solver found it constrained; elsewhere the map holds a pull-push fill or the default,
+        and the median mixes those in).
     """
-    from renderer.imageio import read_exr
+    from renderer.imageio import read_exr, read_png
     from renderer.shading import shade
 
     from . import brdf_fit
@@ -368,12 +370,20 @@ def capture_benchmark(config: MeasuredSceneConfig | None = None, models: Sequenc
                     ss.append(m["ssim"])
             row["psnr"], row["ssim"] = sum(ps) / len(ps), sum(ss) / len(ss)
             observed = _observed(out, T)
+            unobs = {}
+            for k in mdl.param_names:
+                f = out / f"unobservable_{k}.png"
+                if f.is_file():
+                    u = read_png(f, transfer="linear")
+                    unobs[k] = (u if u.dim() == 2 else u[..., 0]) > 0.5
             med = _region_medians(maps, regions, observed)
             for rid, mat in enumerate(config.materials, start=1):
                 if rid not in med:
                     continue
+                sel = (regions == rid) & observed
                 entry = {"params": {k: v.tolist() for k, v in med[rid].items()},
-                         "observed_texels": int(((regions == rid) & observed).sum())}
+                         "observed_texels": int(sel.sum()),
+                         "observable_fraction": {k: float((~u[sel]).float().mean()) for k, u in unobs.items()}}
                 if fit_reference:
                     key = (rep.model, mat)
                     if key not in fits:
@@ -435,6 +445,8 @@ def benchmark_table(rows: Sequence[Mapping]) -> str:
                         f"{e['observed_texels']} | {e.get('l1_capture', math.nan):.3f} "
                         f"({e.get('l1_capture_no_grazing', math.nan):.3f}) | {e.get('l1_fit', math.nan):.3f} "
                         f"({e.get('l1_fit_no_grazing', math.nan):.3f}) |") if first else "| | | | | |"
-                lines.append(f"{head} {p} | {_short(val)} | {_short(fit) if fit is not None else '—'} |")
+                obs = e.get("observable_fraction", {}).get(p)
+                cap = _short(val) + (f" [{obs:.0%} obs.]" if obs is not None and obs < 0.995 else "")
+                lines.append(f"{head} {p} | {cap} | {_short(fit) if fit is not None else '—'} |")
                 first = False
     return "\n".join(lines)

@@ -103,3 +103,26 @@ def test_geometry_matches_capture_synthetic():
     for c, ls, v in zip(cams, lights, views, strict=True):
         torch.testing.assert_close(c.center, v.camera.center)
         torch.testing.assert_close(torch.as_tensor(ls[0].position), torch.as_tensor(v.lights[0].position))
+
+
+@pytest.mark.slow
+def test_capture_of_the_default_measured_scene_regression(tmp_path):
+    """The default scene (4 NBRDF fits of MERL, 12 views, every 4th held out), reconstructed with lambert and
+    ggx-lambert. Measured (docs/measured-fits.md, "Capture of measured materials"): held-out PSNR 17.8 / 23.4 dB,
+    SSIM 0.961 / 0.980; the Lambert albedo of red-fabric2 (nearly Lambertian) within 5 % of fit_brdf's Lambert fit
+    of the same material on every channel. Thresholds leave ~1.5 dB / 0.01 SSIM of margin."""
+    from capture import brdf_fit
+
+    rows = M.capture_benchmark(M.measured_scene(), models=("lambert", "ggx-lambert"), work_dir=tmp_path,
+                               fit_reference=False)
+    lam, ggx = rows
+    assert lam["error"] is None and ggx["error"] is None
+    assert lam["psnr"] > 16.0 and lam["ssim"] > 0.95
+    assert ggx["psnr"] > 21.5 and ggx["ssim"] > 0.97
+    assert ggx["psnr"] > lam["psnr"] + 3.0  # a specular lobe matters on silver/nickel
+    assert ggx["psnr_train"] > ggx["psnr"] + 10.0  # per-texel fits overfit the few views each texel sees
+    fit = brdf_fit.fit_brdf("lambert", materials.get("measured", material="red-fabric2"),
+                            brdf_fit.make_samples(resolution=16, dtype=torch.float64), restarts=1)
+    cap = torch.tensor(lam["regions"]["red-fabric2"]["params"]["albedo"], dtype=torch.float64)
+    torch.testing.assert_close(cap, fit.params["albedo"], rtol=0.08, atol=0.0)
+    assert lam["regions"]["red-fabric2"]["observed_texels"] > 600
