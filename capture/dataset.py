@@ -735,8 +735,9 @@ def write_dataset(
     if out.exists() and not overwrite:
         raise DatasetError(f"{out}: already exists; choose another folder or pass overwrite=True")
     parent = out.parent if str(out.parent) else Path(".")
-    if not parent.is_dir():
-        raise DatasetError(f"{out}: parent folder {parent} does not exist; create it first")
+    if parent.exists() and not parent.is_dir():
+        raise DatasetError(f"{out}: parent {parent} is a file, not a folder; choose another output path")
+    parent.mkdir(parents=True, exist_ok=True)
     if encoding == "srgb" and saturation is None:
         saturation = (1 << bits) - 1
     ext = ".exr" if encoding == "linear" else ".png"
