@@ -228,6 +228,25 @@ def main(argv=None) -> int:
             fits[m] = (model, res)
             print(f"{mat:28s} {m:24s} L1 {res.errors.rel_l1:.4f} (w/o grazing {res.errors.rel_l1_no_grazing:.4f}) "
                   f"{res.seconds:.1f} s", flush=True)
+        mix = results[mat].get("nielsen-mixture")
+        for nested, a in (("nielsen-phong", 0.02), ("nielsen-blinn-phong", 0.98)):
+            # The mixture contains Phong (α = 0) and Blinn-Phong (α = 1), but its spread restarts (α = ¼, ½, ¾)
+            # can miss both ends (measured: alumina-oxide 0.329 vs Blinn-Phong 0.171). Warm-start it from each
+            # nested fit and keep the best (measured: alumina-oxide 0.329 → 0.166; beige-fabric 0.073 → 0.064, still
+            # above Blinn-Phong's 0.060: Adam's first steps leave the nested optimum, so this narrows, not closes,
+            # the gap).
+            if mix is None or nested not in results[mat]:
+                continue
+            init = {k: v for k, v in results[mat][nested].params.items() if k in mix.params}
+            init["mix"] = torch.tensor(a, dtype=torch.float64)
+            warm = brdf_fit.fit_brdf(fits["nielsen-mixture"][0], target, samples, procedure=args.procedure,
+                                     restarts=1, init=init)
+            if warm.objective < mix.objective:
+                warm.seconds += mix.seconds
+                warm.restarts = mix.restarts + warm.restarts
+                mix = results[mat]["nielsen-mixture"] = warm
+                fits["nielsen-mixture"] = (fits["nielsen-mixture"][0], warm)
+                print(f"{mat:28s} nielsen-mixture warm-started from {nested}: L1 {warm.errors.rel_l1:.4f}", flush=True)
         if mat in FIGURE_MATERIALS:
             png = figdir / f"measured-{mat}.png"
             render_figure(mat, fits, png, args.size)
