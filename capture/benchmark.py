@@ -309,3 +309,109 @@ def run_approximation_benchmark(out: str | None = None, figure: str | None = Non
     if out:
         replace_section(Path(out), "approximations", "## Approximations: cost against error\n\n" + table)
     return table
+
+
+# -- reconstruction: time against error (issue 4) ------------------------------------------------
+
+
+def _peak_rss_mib() -> float:
+    """Peak resident memory of this process so far (MiB), from ``resource.getrusage``."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def reconstruction_run(dataset, model: str = "ggx-lambert", solver: str = "fast", threads: int | None = None,
+                       **options) -> dict:
+    """Reconstruct ``dataset`` once into a temporary folder and return the numbers of a benchmark row.
+
+    Returns a dict: ``seconds`` (end to end), ``times`` (per stage), ``rmse_observed`` /
+    ``rmse_observable`` (per map, fitted values), ``observable_fraction`` (per map), ``fit`` (solver
+    info without long lists), ``skipped``, ``peak_rss_mib`` (process peak so far), ``threads``.
+    """
+    import tempfile
+    from pathlib import Path
+
+    from .reconstruct import reconstruct
+
+    old = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    try:
+        with tempfile.TemporaryDirectory() as d:
+            t0 = time.perf_counter()
+            rep = reconstruct(dataset, model=model, out_dir=Path(d) / "out", solver=solver, progress=False, **options)
+            seconds = time.perf_counter() - t0
+    finally:
+        torch.set_num_threads(old)
+    fit = {k: v for k, v in rep.fit.items() if not isinstance(v, (list, dict)) or k == "observable_fraction"}
+    return {
+        "seconds": seconds, "times": rep.times, "threads": threads or old,
+        "rmse_observed": {k: v["rmse"] for k, v in rep.errors.get("maps", {}).items()},
+        "rmse_observable": {k: v["rmse"] for k, v in rep.errors.get("maps_observable", {}).items()},
+        "observable_fraction": rep.coverage.get("observable_fraction", {}),
+        "observed_texels": rep.coverage.get("observed"), "fit": fit, "skipped": rep.skipped,
+        "samples": rep.samples, "peak_rss_mib": _peak_rss_mib(),
+    }
+
+
+def run_reconstruction_benchmark(out: str | None = None, scene: str = "default", rigs=("flash", "fixed"),
+                                 threads: int | None = None, adam=((0.05, 200), (0.02, 500)),
+                                 fast_variants: bool = True, workdir: str | None = None) -> str:
+    """Time against error of the reconstruction (markdown), written into ``out``'s
+    ``reconstruction`` section when given.
+
+    ``scene="default"``: :func:`capture.synthetic.default_scene` (16 views of 256², 256² maps,
+    GGX + Lambert, 2 point lights, bilinear, noise-free), once per light rig in ``rigs``;
+    ``scene="small"``: :func:`capture.synthetic.small_scene` (96 px, 6 views, 32² maps). Rows: the fast
+    path (default options), the fast path without the joint bilinear refinement and with a
+    finer grid (``fast_variants``), and Adam for each ``(lr, iterations)`` of ``adam`` (bilinear
+    sampling). Each row: end-to-end seconds, per-map RMSE on observed texels and on texels where
+    the map is observable, observable fractions, and the process's peak memory so far.
+    """
+    import tempfile
+    from pathlib import Path
+
+    from .report import replace_section
+    from .synthetic import default_scene, make_synthetic, small_scene
+
+    rows = []
+    with tempfile.TemporaryDirectory(dir=workdir) as d:
+        for rig in rigs:
+            if scene == "default":
+                cfg = default_scene(light_rig=rig) if rig != "fixed" else default_scene(light_rig="fixed",
+                                                                                         light_offset_deg=45.0)
+            else:
+                cfg = small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6, light_rig=rig)
+            ds = make_synthetic(cfg, Path(d) / f"ds_{rig}")
+            from .dataset import load_dataset
+
+            cov = load_dataset(ds).meta.get("highlight_coverage", {}).get("coverage")
+            variants = [("fast", "fast", {})]
+            if fast_variants:
+                variants += [("fast, no joint refinement", "fast", {"joint_iterations": 0}),
+                             ("fast, coarse grid 8 + 6 refinements", "fast", {"grid": 8, "refine": 6})]
+            variants += [(f"adam lr {lr} × {it}", "adam", {"lr": lr, "iterations": it}) for lr, it in adam]
+            for label, solver, opts in variants:
+                r = reconstruction_run(ds, solver=solver, threads=threads, **opts)
+                rows.append({"rig": rig, "highlight_coverage": cov, "label": label, **r})
+    lines = [f"Machine: {machine_description()}; scene `{scene}`.", "",
+             "| rig (highlight cov.) | solver | s | albedo obs. / obsv. | f0 obs. / obsv. | roughness obs. / obsv. "
+             "| observable % (a/f0/r) | peak MiB |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        def cell(k, r=r):
+            return f"{r['rmse_observed'].get(k, float('nan')):.4f} / {r['rmse_observable'].get(k, float('nan')):.4f}"
+        fr = r["observable_fraction"]
+        lines.append(f"| {r['rig']} ({(r['highlight_coverage'] or 0):.0%}) | {r['label']} | {r['seconds']:.1f} | "
+                     f"{cell('albedo')} | {cell('f0')} | {cell('roughness')} | "
+                     f"{fr.get('albedo', 0):.0%} / {fr.get('f0', 0):.0%} / {fr.get('roughness', 0):.0%} | "
+                     f"{r['peak_rss_mib']:.0f} |")
+    lines += ["", "Stage times of the first fast row (s): " + ", ".join(
+        f"{k} {v:.1f}" for k, v in rows[0]["times"].items()) if rows else ""]
+    fit0 = rows[0]["fit"] if rows else {}
+    lines.append("Solver internals of that row (s): " + ", ".join(
+        f"{k} {fit0[k]:.1f}" for k in ("grid_s", "lm_s", "joint_s", "posterior_s") if k in fit0))
+    table = "\n".join(lines)
+    if out:
+        replace_section(Path(out), "reconstruction", "## Reconstruction: time against error\n\n" + table)
+    return table

@@ -82,17 +82,24 @@ def _model(name):
         raise ReconstructionError(f"model {name!r}: {exc}") from None
 
 
+_FAST_KEYS = ("iterations", "grid", "refine", "schedule", "smoothness", "delta", "observable_std", "noise",
+              "reproject", "sampling", "joint_iterations", "cg_iterations", "tol")
+_ADAM_KEYS = ("iterations", "lr", "delta", "observable_std", "noise", "sampling", "time_budget_s")
+
+
 def _solve(model, obs: Observations, solver: str, loss: str, options: dict, progress) -> FitResult:
-    if solver == "fast":
-        keys = ("iterations", "grid", "schedule", "smoothness", "delta", "observable_threshold", "reproject")
-        return solve_fast(model, obs, loss=loss, progress=progress, **{k: v for k, v in options.items() if k in keys})
-    keys = ("iterations", "lr", "delta", "observable_threshold", "sampling")
-    return solve_adam(model, obs, loss=loss, progress=progress, **{k: v for k, v in options.items() if k in keys})
+    keys = _FAST_KEYS if solver == "fast" else _ADAM_KEYS
+    unknown = sorted(set(options) - set(_FAST_KEYS) - set(_ADAM_KEYS))
+    if unknown:
+        raise ReconstructionError(f"unknown solver option(s) {unknown}; the fast solver takes {list(_FAST_KEYS)}, "
+                                  f"adam takes {list(_ADAM_KEYS)}")
+    fn = solve_fast if solver == "fast" else solve_adam
+    return fn(model, obs, loss=loss, progress=progress, **{k: v for k, v in options.items() if k in keys})
 
 
-def _heldout_rmse(model, fit: FitResult, obs: Observations) -> float:
+def _heldout_rmse(model, fit: FitResult, obs: Observations, sampling: str = "nearest") -> float:
     with torch.no_grad():
-        pred = obs.predict(model, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}))
+        pred = obs.predict(model, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}, sampling))
     return float((pred - obs.radiance).square().mean().sqrt())
 
 
@@ -110,7 +117,8 @@ def _grid_image(rows: list[list[Tensor]]) -> Tensor:
 
 def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool = False, solver: str = "fast",
                 loss: str = "l2", texture_size: int | None = None, dtype: torch.dtype = torch.float32,
-                progress: bool = True, auto_gain: float = 0.05, max_grid_views: int = 8, **options) -> Report:
+                progress: bool = True, auto_gain: float = 0.05, max_grid_views: int = 8, sampling: str | None = None,
+                **options) -> Report:
     """Recover the material maps of a dataset and write them to ``out_dir`` (see module docstring).
 
     Args:
@@ -124,6 +132,10 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         progress: show a tqdm bar with the live loss.
         auto_gain: ``model="auto"`` stops when the held-out RMSE drops by less than this fraction.
         max_grid_views: views shown in the re-render grid.
+        sampling: how a sample reads the maps: "nearest" or "bilinear"; None = as the dataset's
+            ground truth was rendered (``gt.render.sampling``), else "bilinear" (a texture-mapped
+            surface). Bilinear runs the per-texel solve and then the joint refinement
+            (:func:`capture.solvers.refine_joint`).
         **options: passed to the solver (iterations, grid, schedule, smoothness, delta, lr, ...).
 
     Returns:
@@ -175,8 +187,14 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         for x in v.lights:
             if all(x is not y for y in all_lights):
                 all_lights.append(x)
+    if sampling is None:
+        sampling = (ds.gt.render.get("sampling") if ds.gt is not None and ds.gt.render else None) or "bilinear"
+    if sampling not in ("nearest", "bilinear"):
+        raise ReconstructionError(f"sampling must be 'nearest' or 'bilinear', got {sampling!r}")
+    options = {**options, "sampling": sampling}
     obs = observe_views(preps, [p.radiance for p in photos], (texture_size, texture_size), exposure=1.0,
-                        clipped=[p.saturated for p in photos], lights=all_lights, dtype=dtype)
+                        clipped=[p.saturated for p in photos], lights=all_lights, dtype=dtype,
+                        bilinear=sampling == "bilinear")
     times["observe"] = time.perf_counter() - t
     n_pix = sum(v.camera.width * v.camera.height for v in ds.views)
     report = Report(model="", solver=solver, out_dir=str(out_dir))
@@ -207,7 +225,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             m = _model(name)
             ts = time.perf_counter()
             fit = _solve(m, train_obs, solver, loss, options, cb)
-            err = _heldout_rmse(m, fit, test_obs)
+            err = _heldout_rmse(m, fit, test_obs, sampling)
             report.selection.append({"model": name, "heldout_rmse": err, "seconds": time.perf_counter() - ts,
                                      "params": list(m.param_names)})
             if err < best_err * (1 - auto_gain):
@@ -240,6 +258,9 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     report.coverage = {"texels": int(observed.numel()), "observed": int(observed.sum()),
                        "unobserved_filled": int((~observed).sum()),
                        "unobservable": {k: int(v.sum()) for k, v in fit.unobservable.items()},
+                       "observable_fraction": {k: 1.0 - float(v[observed].float().mean()) if bool(observed.any())
+                                               else 0.0 for k, v in fit.unobservable.items()},
+                       "sampling": sampling,
                        "samples_per_observed_texel": float(spt[observed].float().mean()) if bool(observed.any()) else 0}
     for k, v in fit.unobservable.items():
         if bool(observed.any()) and int(v.sum()) == int(observed.sum()):
@@ -255,13 +276,15 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     from .metrics import image_metrics, map_errors
 
     if ds.gt is not None:
-        report.errors["maps"] = map_errors(fit.maps, ds.gt.maps, observed, ds.gt.regions, ds.gt.region_names)
-        report.errors["maps_observable"] = map_errors(fit.maps, ds.gt.maps, observed, None, None,
-                                                      exclude=fit.unobservable)
+        # fitted values (raw) on every observed texel, and on the texels where each map is observable
+        report.errors["maps"] = map_errors(fit.raw, ds.gt.maps, observed, ds.gt.regions, ds.gt.region_names)
+        report.errors["maps_observable"] = map_errors(fit.raw, ds.gt.maps, observed, ds.gt.regions,
+                                                      ds.gt.region_names, exclude=fit.unobservable)
+        report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
         report.errors["gt_model"] = ds.gt.model
     renders = []
     with torch.no_grad():
-        pred = obs.predict(mdl, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}))
+        pred = obs.predict(mdl, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}, sampling))
     for i, v in enumerate(ds.views):
         H, W = v.camera.height, v.camera.width
         img = torch.zeros(H * W, 3, dtype=pred.dtype)
@@ -345,9 +368,13 @@ def _summary(r: Report) -> str:
         lines.append("auto: " + " → ".join(f"{s['model']} (held-out RMSE {s['heldout_rmse']:.4g})"
                                            for s in r.selection))
     if "maps" in r.errors:
-        lines.append("errors vs ground truth on observed texels (RMSE / max):")
+        lines.append("errors vs ground truth, RMSE / max: on observed texels | on texels where the map is observable "
+                     "(fraction observable)")
+        frac = r.coverage.get("observable_fraction", {})
         for k, v in r.errors["maps"].items():
-            lines.append(f"  {k:12s} {v['rmse']:.5f} / {v['max']:.5f}")
+            o = r.errors.get("maps_observable", {}).get(k, {})
+            lines.append(f"  {k:14s} {v['rmse']:.5f} / {v['max']:.5f} | {o.get('rmse', float('nan')):.5f} / "
+                         f"{o.get('max', float('nan')):.5f} ({frac.get(k, float('nan')):.1%})")
     if r.views:
         ps = [v["psnr"] for v in r.views]
         lines.append(f"re-render PSNR {min(ps):.1f}–{max(ps):.1f} dB, SSIM mean "

@@ -41,6 +41,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import torch
+import torch.autograd.forward_ad as fwAD
 import torch.nn.functional as F
 from torch import Tensor
 
@@ -50,7 +51,8 @@ from materials.params import ParamSpec
 
 from .observations import Observations
 
-__all__ = ["Layout", "FitResult", "SolverError", "LOSSES", "solve_fast", "solve_adam", "pull_push", "robust_rho"]
+__all__ = ["Layout", "FitResult", "SolverError", "LOSSES", "OBSERVABLE_STD", "NOISE", "solve_fast", "solve_adam",
+           "refine_joint", "posterior_std", "std_threshold", "pull_push", "robust_rho"]
 
 LOSSES = ("l2", "huber", "l1")
 _EPS_BOUND = 1e-6
@@ -132,6 +134,10 @@ class Layout:
                 x = x.expand(*x.shape[:-1], s.channels)
             parts.append(from_canonical(s, x))
         return torch.cat(parts, -1)
+
+    def split(self, x: Tensor) -> dict[str, Tensor]:
+        """Canonical values packed ``[..., P]`` → ``name → [..., C]`` (no transform)."""
+        return {s.name: x[..., o:o + s.channels] for s, o in zip(self.specs, self.offsets, strict=True)}
 
     def dcanonical(self, theta: Tensor) -> Tensor:
         """dp/dθ per column ``[..., P]``."""
@@ -271,26 +277,39 @@ def _groups(model: Model, layout: Layout, dtype) -> list[tuple[list[int], bool]]
     return out
 
 
-def _jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups) -> tuple[Tensor, Tensor]:
-    """Prediction ``[S, 3]`` and Jacobian ``[S, 3, P]`` wrt per-sample θ ``phi [S, P]`` by forward-mode AD."""
+def _jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups,
+              canonical: bool = False) -> tuple[Tensor, Tensor]:
+    """Prediction ``[S, 3]`` and Jacobian ``[S, 3, P]`` wrt per-sample θ ``phi [S, P]`` by forward-mode AD.
+
+    ``canonical=True``: ``phi`` holds canonical values and the Jacobian is with respect to them.
+    """
     S, P = phi.shape
 
     phi = phi.to(obs.dtype)
+    unpack = layout.split if canonical else layout.unpack
 
     def f(x):
-        return obs.predict(model, layout.unpack(x))
+        return obs.predict(model, unpack(x))
 
     J = torch.zeros(S, 3, P, dtype=ACC, device=phi.device)
     pred = None
     for cols, diag in groups:
         t = torch.zeros_like(phi)
         t[:, cols] = 1.0
-        pred, jo = torch.func.jvp(f, (phi,), (t,))
+        # native forward-mode AD (dual tensors): same values as torch.func.jvp, less Python overhead
+        with fwAD.dual_level():
+            out = fwAD.unpack_dual(f(fwAD.make_dual(phi, t)))
+            pred, jo = out.primal, out.tangent
+        if jo is None:
+            jo = torch.zeros_like(pred)
         if diag:
             for c, col in enumerate(cols):
                 J[:, c, col] = jo[:, c]
         else:
             J[:, :, cols[0]] = jo
+    if pred is None:
+        with torch.no_grad():
+            pred = f(phi)
     return pred.to(ACC), J
 
 
@@ -345,78 +364,136 @@ def pull_push(values: Tensor, known: Tensor, levels: int | None = None) -> Tenso
     return torch.where(known[..., None], values, out)
 
 
-def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, groups, *, loss: str, delta: float,
-              observable_threshold: float, history: list[float], iterations: int, t0: float, solver: str,
-              info: dict) -> FitResult:
-    """Confidence, observability, pull-push filling → :class:`FitResult`."""
-    H, W = obs.map_size
-    T, P = obs.n_texels, layout.P
-    theta = theta.to(ACC)
+#: Default thresholds on the marginal posterior standard deviation (canonical units) below which a
+#: parameter counts as observable in a texel (see :func:`posterior_std`); other names: 0.02 × range (≤ 1).
+OBSERVABLE_STD = {"albedo": 0.01, "f0": 0.01, "specular": 0.01, "roughness": 0.02, "coat_roughness": 0.02,
+                  "mix": 0.02, "mask": 0.02, "ior": 0.05, "coat_ior": 0.05, "absorption": 0.05}
+#: Default photo noise model of the observability test: (relative std, floor as a fraction of the
+#: median sample radiance) — σ_sc = rel · max(|y_sc|, floor · median).
+NOISE = (0.01, 0.1)
+
+
+def std_threshold(spec: ParamSpec, observable_std: float | Mapping[str, float] | None = None) -> float:
+    """The observability threshold of a parameter (canonical units), see :data:`OBSERVABLE_STD`."""
+    if isinstance(observable_std, (int, float)) and not isinstance(observable_std, bool):
+        return float(observable_std)
+    table = dict(OBSERVABLE_STD)
+    if observable_std is not None:
+        table.update(observable_std)
+    if spec.name in table:
+        return float(table[spec.name])
+    return 0.02 * min(spec.high - spec.low, 1.0)
+
+
+def _check_noise(noise) -> tuple[float, float]:
+    try:
+        rel, floor = (float(x) for x in noise)
+    except (TypeError, ValueError):
+        raise SolverError(f"noise must be (relative std, floor fraction), e.g. {NOISE}, got {noise!r}") from None
+    if not (rel > 0 and floor > 0 and math.isfinite(rel) and math.isfinite(floor)):
+        raise SolverError(f"noise must hold two positive finite numbers, got {noise!r}")
+    return rel, floor
+
+
+def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor, groups, *, loss: str = "l2",
+                  delta: float = 1.0, noise=NOISE, sampling: str = "nearest") -> tuple[Tensor, Tensor, Tensor]:
+    """Marginal posterior standard deviation of every parameter column in every texel.
+
+    Gauss-Newton at the solution: with ``J`` the Jacobian of the predicted radiance with respect
+    to the texel's *canonical* parameters (albedo, f0, roughness, … in their own units), the photo
+    noise model ``σ_sc = rel · max(|y_sc|, floor · median(y))`` (``noise = (rel, floor)``; default
+    1 % of the signal — a well-exposed photo — never below 0.1 % of the median radiance) and IRLS
+    weights ``w`` of a robust loss, the posterior covariance of a texel is
+    ``C = s² (Jᵀ diag(w/σ²) J)⁻¹`` with ``s² = max(1, χ²/dof)`` (the residual variance, when the
+    fit explains the photos worse than the noise model says). The marginal std of a parameter is
+    ``sqrt(C_pp)``: it accounts for every trade-off with the other parameters (albedo vs f0, the
+    f0·α² degeneracy of a GGX tail seen without a highlight), which a one-parameter test misses.
+    A direction no residual constrains gets a variance of ~1e12 (a 1e-12 relative ridge).
+
+    ``sampling="bilinear"``: each sample reads four texels; the texel's block of the normal matrix
+    is ``Σ_s w_sk² J_sᵀ W J_s`` (neighbours held fixed — a lower bound on the joint variance).
+
+    Args:
+        canon: ``[T, P]`` canonical parameters (packed in :class:`Layout` order).
+
+    Returns:
+        ``(std [T, P], observed [T] bool, pred [S, 3])`` — std is +inf where unobserved.
+    """
+    rel, floor = _check_noise(noise)
+    T, P = canon.shape
     with torch.no_grad():
-        pred, J = _jacobian(model, layout, obs, theta[obs.texel], groups)
-        r = obs.radiance.to(ACC) - pred
-        w = (obs.weight.to(ACC)[:, None] * _irls(r, loss, delta))
-        JtJ = torch.zeros(T, P, P, dtype=theta.dtype, device=theta.device).index_add(
-            0, obs.texel, torch.einsum("scp,sc,scq->spq", J, w, J))
-        n_res = torch.zeros(T, dtype=theta.dtype, device=theta.device).index_add(
-            0, obs.texel, 3 * obs.weight.to(ACC))
-        sig2 = torch.zeros(T, dtype=theta.dtype, device=theta.device).index_add(
-            0, obs.texel, (w * r * r).sum(-1))
-        signal = torch.zeros(T, dtype=theta.dtype, device=theta.device).index_add(
-            0, obs.texel, obs.weight.to(ACC) * obs.radiance.to(ACC).square().sum(-1))
-        observed = n_res > 0
-        dp = layout.dcanonical(theta)                                              # [T, P]
-        diag = torch.diagonal(JtJ, dim1=-2, dim2=-1) / dp.square().clamp_min(1e-300)  # canonical units
-        rms_signal = (signal / n_res.clamp_min(1)).sqrt().clamp_min(1e-12)
-        # marginal information of each parameter with the others re-optimised: 1 / [(JᵀWJ)⁻¹]_pp,
-        # from a ridge-regularised inverse so that a direction no residual constrains (fewer
-        # residuals than parameters, or a trade-off such as albedo vs f0 without highlights) gets
-        # a huge variance instead of pinv's zero
-        # observability in *relative* residuals (each sample weighted by 1/y², floored at 1 % of
-        # the texel's mean radiance), so that bright highlights do not hide the diffuse samples
+        if sampling == "bilinear":
+            idx, bw = obs.bilinear_index, obs.bilinear_weight.to(ACC)
+            per = (canon[idx] * bw[..., None]).sum(-2)
+        else:
+            idx, bw = obs.texel[:, None], torch.ones(obs.n_samples, 1, dtype=ACC, device=obs.device)
+            per = canon[obs.texel]
+        pred, J = _jacobian(model, layout, obs, per, groups, canonical=True)
         y = obs.radiance.to(ACC)
-        ymean = torch.zeros(T, dtype=ACC, device=y.device).index_add(0, obs.texel, y.abs().mean(-1))
-        cnt = torch.bincount(obs.texel, minlength=T).to(ACC).clamp_min(1)
-        floor = (0.01 * ymean / cnt)[obs.texel][:, None]
-        wrel = obs.weight.to(ACC)[:, None] / (y.square() + floor.square()).clamp_min(1e-300)
-        JtJr = torch.zeros(T, P, P, dtype=ACC, device=y.device).index_add(
-            0, obs.texel, torch.einsum("scp,sc,scq->spq", J, wrel, J))
-        ridge = 1e-10 * (torch.diagonal(JtJr, dim1=-2, dim2=-1).amax(-1, keepdim=True) + 1e-30)
-        A = JtJr + torch.diag_embed(ridge.expand(T, P))
-        A = torch.where(observed[:, None, None], A, torch.eye(P, dtype=A.dtype, device=A.device))
-        eyeT = torch.eye(P, dtype=A.dtype, device=A.device).expand(T, P, P)
-        cov_rel = torch.diagonal(torch.linalg.solve(A, eyeT), dim1=-2, dim2=-1).clamp_min(1e-300)
-        marginal = 1.0 / (cov_rel * dp.square().clamp_min(1e-300))             # canonical units
-        sens = 0.1 * (marginal / n_res.clamp_min(1)[:, None]).sqrt()            # [T, P] relative change
-        del rms_signal
-        ridge = 1e-10 * (torch.diagonal(JtJ, dim1=-2, dim2=-1).amax(-1, keepdim=True) + 1e-30)
-        A = JtJ + torch.diag_embed(ridge.expand(T, P))
-        A = torch.where(observed[:, None, None], A, torch.eye(P, dtype=A.dtype, device=A.device))
-        cov_diag = torch.diagonal(torch.linalg.solve(A, eyeT), dim1=-2, dim2=-1).clamp_min(0)
-        del diag
-        # posterior std: sigma² (JᵀWJ)⁻¹ in θ, mapped by dp/dθ
-        dof = (n_res - P).clamp_min(1)
-        s2 = sig2 / dof
-        std = (s2[:, None] * cov_diag.clamp_min(0)).sqrt() * dp
+        r = y - pred
+        med = float(y.abs().mean(-1).median().clamp_min(1e-12))
+        sig2 = (rel * torch.maximum(y.abs(), torch.full_like(y, floor * med))).square()
+        w = obs.weight.to(ACC)[:, None] * _irls(r, loss, delta) / sig2                  # [S, 3]
+        K = idx.shape[1]
+        JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)                                # [S, P, P]
+        A = torch.zeros(T, P, P, dtype=ACC, device=y.device)
+        chi = torch.zeros(T, dtype=ACC, device=y.device)
+        nres = torch.zeros(T, dtype=ACC, device=y.device)
+        chi_s = (w * r * r).sum(-1)
+        for k in range(K):
+            wk = bw[:, k]
+            A.index_add_(0, idx[:, k], JWJ * wk.square()[:, None, None])
+            chi.index_add_(0, idx[:, k], chi_s * wk)
+            nres.index_add_(0, idx[:, k], 3 * wk * (obs.weight.to(ACC) > 0))
+        observed = nres > 0
+        eye = torch.eye(P, dtype=ACC, device=y.device)
+        dmax = torch.diagonal(A, dim1=-2, dim2=-1).amax(-1).clamp_min(1e-30)
+        A = A + (1e-12 * dmax)[:, None, None] * eye
+        A = torch.where(observed[:, None, None], A, eye)
+        cov, info = torch.linalg.inv_ex(A)
+        var = torch.diagonal(cov, dim1=-2, dim2=-1)
+        bad = (info != 0)[:, None] | ~torch.isfinite(var) | (var < 0)
+        var = torch.where(bad, torch.full_like(var, 1e12), var)
+        s2 = (chi / (nres - P).clamp_min(1)).clamp_min(1.0)
+        std = (var * s2[:, None]).sqrt()
+        std = torch.where(observed[:, None], std, torch.full_like(std, math.inf))
+    return std, observed, pred
+
+
+def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, groups, *, loss: str, delta: float,
+              observable_std, noise, history: list[float], iterations: int, t0: float, solver: str,
+              info: dict, sampling: str = "nearest") -> FitResult:
+    """Posterior std, observability, pull-push filling → :class:`FitResult`."""
+    H, W = obs.map_size
+    t_post = time.perf_counter()
+    theta = theta.to(ACC)
+    params_acc = layout.unpack(theta)
+    canon = torch.cat([params_acc[s.name] for s in layout.specs], -1)
+    std, observed, _ = posterior_std(model, layout, obs, canon, groups, loss=loss, delta=delta, noise=noise,
+                                     sampling=sampling)
+    info["posterior_s"] = time.perf_counter() - t_post
     params = layout.unpack(theta.detach().to(obs.dtype))
-    maps, unobs, filled, conf, sensitivity = {}, {}, {}, {}, {}
+    maps, unobs, filled, conf, ratio = {}, {}, {}, {}, {}
     obs_hw = observed.reshape(H, W)
     for s, o in zip(layout.specs, layout.offsets, strict=True):
         sl = slice(o, o + s.channels)
-        sp = sens[:, sl].amax(-1)
-        bad = observed & (sp < observable_threshold)
+        thr = std_threshold(s, observable_std)
+        sp = std[:, sl].amax(-1) / thr
+        bad = observed & ~(sp < 1.0)
         val = params[s.name].reshape(H, W, s.channels)
         known = (observed & ~bad).reshape(H, W)
         fill_val = pull_push(val, known) if bool(known.any()) else s.full((H, W), device=val.device, dtype=val.dtype)
         maps[s.name] = torch.where(known[..., None], val, fill_val)
         unobs[s.name] = bad.reshape(H, W)
         filled[s.name] = ~known
-        c = std[:, sl].reshape(H, W, s.channels).clone()
-        c[~known] = float("nan")
+        c = std[:, sl].clamp_max(1e6).reshape(H, W, s.channels).to(obs.dtype).clone()
+        c[~obs_hw] = float("nan")
         conf[s.name] = c
-        sensitivity[s.name] = torch.where(obs_hw, sp.reshape(H, W), torch.full_like(sp.reshape(H, W), float("nan")))
+        ratio[s.name] = torch.where(obs_hw, sp.reshape(H, W), torch.full_like(sp.reshape(H, W), float("nan")))
+    info["observable_fraction"] = {k: (1.0 - float(v[obs_hw].float().mean())) if bool(obs_hw.any()) else 0.0
+                                   for k, v in unobs.items()}
     return FitResult(maps=maps, observed=obs_hw, unobservable=unobs, filled=filled, confidence=conf,
-                     sensitivity=sensitivity, history=history, iterations=iterations, time_s=time.perf_counter() - t0,
+                     sensitivity=ratio, history=history, iterations=iterations, time_s=time.perf_counter() - t0,
                      solver=solver, info=info,
                      raw={k: v.reshape(H, W, -1) for k, v in params.items()})
 
@@ -439,66 +516,99 @@ def _linear_solve(model: Model, layout: Layout, obs: Observations, theta: Tensor
     With the nonlinear parameters fixed the prediction is ``b + A x`` (x: the linear parameters'
     channels), so per texel ``x = (AᵀWA + λI)⁻¹ (AᵀW(y − b) + λ x_default)`` with a tiny ridge λ
     toward the defaults (keeps unobserved combinations sensible). ``A`` is found by evaluating the
-    model at x = 0 and at each unit x (one evaluation per parameter for separable RGB ones). The
-    solution is clipped 1 % inside the range (see below) and returned as θ with its per-texel cost.
+    model at x = 0 and at each unit x (one evaluation per parameter for separable RGB ones). When
+    every linear parameter is a separable RGB one (albedo, f0 under Schlick), the system splits
+    into three independent per-channel systems of size #linear (2×2 for GGX + Lambert).
+    Bounds: a solution outside the range is clipped ``1e-4``·range inside it (a value on the
+    bound would saturate the sigmoid, dp/dθ = 0) and the other unknowns of that system are
+    re-solved once with the clipped ones fixed (one active-set pass). Returns θ and the per-texel cost.
     """
     T, dt, dev = obs.n_texels, ACC, obs.device
-    L = sum(s.channels for s in lin)
     y, w = obs.radiance.to(ACC), obs.weight.to(ACC)
     p = {k: x[obs.texel] for k, x in layout.unpack(theta.to(obs.dtype)).items()}
     for s in lin:
         p[s.name] = torch.zeros_like(p[s.name])
     b = obs.predict(model, p).to(ACC)
-    A = torch.zeros(obs.n_samples, 3, L, dtype=dt, device=dev)
-    col = 0
+    per_channel = all(s.channels == 3 and sep[s.name] for s in lin)
+    cols = []                                             # per column: [S, 3] response to a unit value
     for s in lin:
         if sep[s.name] or s.channels == 1:
             q = dict(p)
             q[s.name] = torch.ones_like(p[s.name])
             a = obs.predict(model, q).to(ACC) - b
-            if s.channels == 1:
-                A[:, :, col] = a
+            if s.channels == 1 or per_channel:
+                cols.append(a)
             else:
                 for c in range(3):
-                    A[:, c, col + c] = a[:, c]
+                    e = torch.zeros_like(a)
+                    e[:, c] = a[:, c]
+                    cols.append(e)
         else:
             for c in range(s.channels):
                 q = dict(p)
                 e = torch.zeros_like(p[s.name])
                 e[:, c] = 1.0
                 q[s.name] = e
-                A[:, :, col + c] = obs.predict(model, q).to(ACC) - b
-        col += s.channels
-    M = torch.zeros(T, L, L, dtype=dt, device=dev).index_add(0, obs.texel, torch.einsum("scp,s,scq->spq", A, w, A))
-    rhs = torch.zeros(T, L, dtype=dt, device=dev).index_add(0, obs.texel, torch.einsum("scp,s,sc->sp", A, w, y - b))
+                cols.append(obs.predict(model, q).to(ACC) - b)
+    lo = torch.cat([torch.full((s.channels,), float(s.low), dtype=dt, device=dev) for s in lin])
+    hi = torch.cat([torch.full((s.channels,), float(s.high), dtype=dt, device=dev) for s in lin])
+    span = torch.where(torch.isfinite(hi), hi - lo, torch.ones_like(hi))
+    lo_m, hi_m = lo + 1e-4 * span, torch.where(torch.isfinite(hi), hi - 1e-4 * span, hi)
     dflt = torch.cat([s.full((), dtype=dt, device=dev).expand(s.channels) for s in lin])
-    lam = 1e-9 * (torch.diagonal(M, dim1=-2, dim2=-1).mean(-1) + 1e-20)
-    M = M + lam[:, None, None] * torch.eye(L, dtype=dt, device=dev)
-    x = torch.linalg.solve(M, rhs + lam[:, None] * dflt)
-    xs, col = [], 0
-    for s in lin:
-        # clipped a little inside the range: a value on the bound would saturate the
-        # sigmoid/softplus (dp/dθ ≈ 0) and LM could never move it back
-        m = 0.01 * (s.high - s.low) if _bounded(s) else 1e-3
-        hi = s.high - m if _bounded(s) else math.inf
-        xs.append(x[:, col:col + s.channels].clamp(s.low + m, hi))
-        col += s.channels
-    x = torch.cat(xs, -1)
-    pred = b + torch.einsum("scp,sp->sc", A, x[obs.texel])
+    if per_channel:
+        # unknowns ordered [param][channel] → per channel c a system over the params
+        A = torch.stack(cols, -1)                                             # [S, 3, Lp]
+        Lp = A.shape[-1]
+        M = torch.zeros(T, 3, Lp, Lp, dtype=dt, device=dev).index_add(
+            0, obs.texel, A[..., :, None] * A[..., None, :] * w[:, None, None, None])
+        rhs = torch.zeros(T, 3, Lp, dtype=dt, device=dev).index_add(0, obs.texel, A * ((y - b) * w[:, None])[..., None])
+        perm = lambda v: v.reshape(Lp, 3).T  # noqa: E731  [L] in [param][channel] order → [3, Lp]
+        lo_c, hi_c, d_c = perm(lo_m), perm(hi_m), perm(dflt)
+    else:
+        A = torch.stack(cols, -1)                                             # [S, 3, L]
+        M = torch.einsum("scp,s,scq->spq", A, w, A)
+        M = torch.zeros(T, M.shape[1], M.shape[2], dtype=dt, device=dev).index_add(0, obs.texel, M)[:, None]
+        rhs = torch.zeros(T, A.shape[-1], dtype=dt, device=dev).index_add(
+            0, obs.texel, torch.einsum("scp,s,sc->sp", A, w, y - b))[:, None]
+        lo_c, hi_c, d_c = lo_m[None], hi_m[None], dflt[None]
+    n = M.shape[-1]
+    eye = torch.eye(n, dtype=dt, device=dev)
+    lam = 1e-9 * (torch.diagonal(M, dim1=-2, dim2=-1).mean(-1) + 1e-20)                 # [T, K]
+    Mr = M + lam[..., None, None] * eye
+    rr = rhs + lam[..., None] * d_c
+    x = torch.linalg.solve_ex(Mr, rr)[0]
+    clip = (x < lo_c) | (x > hi_c)
+    if bool(clip.any()):
+        xc = x.clamp(lo_c, hi_c)
+        # active set: fixed (clipped) unknowns leave the system; the free ones are re-solved
+        free = ~clip
+        fm = free[..., :, None] & free[..., None, :]
+        Mf = torch.where(fm, Mr, eye.expand_as(Mr))
+        rf = torch.where(free, rr - torch.einsum("...pq,...q->...p", torch.where(free[..., None, :], 0.0, Mr),
+                                                 torch.where(clip, xc, torch.zeros_like(xc))), xc)
+        x2 = torch.linalg.solve_ex(Mf, rf)[0]
+        x = torch.where(clip, xc, x2).clamp(lo_c, hi_c)
+    if per_channel:
+        xflat = x.transpose(-1, -2).reshape(T, -1)                                       # [T, Lp·3]
+        pred = b + (A * x[obs.texel]).sum(-1)
+    else:
+        xflat = x[:, 0]
+        pred = b + torch.einsum("scp,sp->sc", A, xflat[obs.texel])
     cost = _texel_cost(obs, pred, loss, delta)
     cand = theta.clone()
     off = 0
     for s in lin:
-        cand[:, layout.cols(s.name)] = from_canonical(s, x[:, off:off + s.channels])
+        cand[:, layout.cols(s.name)] = from_canonical(s, xflat[:, off:off + s.channels])
         off += s.channels
     return cand, cost
 
 
 def _closed_form_init(model: Model, layout: Layout, obs: Observations, theta: Tensor, grid: int,
-                      loss: str, delta: float, sep: dict[str, bool]) -> tuple[Tensor, dict]:
-    """Closed-form linear parameters per texel for each grid value of the main nonlinear one; keep
-    the best per texel, then refine the grid value by a parabola through the best and its two
-    neighbours (one more closed-form solve)."""
+                      loss: str, delta: float, sep: dict[str, bool], refine: int = 3) -> tuple[Tensor, dict]:
+    """Closed-form linear parameters per texel for each of ``grid`` values of the main nonlinear
+    one; keep the best per texel, then coarse to fine: ``refine`` rounds, each trying the best
+    value ± h (log units) and the vertex of the parabola through those three costs (three
+    closed-form solves with per-texel values), keeping the best and dividing h by 3."""
     lin = [s for s in layout.specs if s.linear]
     nonlin = [s for s in layout.specs if not s.linear]
     info = {"linear": [s.name for s in lin], "grid_param": None, "grid": 0}
@@ -513,6 +623,13 @@ def _closed_form_init(model: Model, layout: Layout, obs: Observations, theta: Te
         values = _grid_values(primary, grid, dt, dev)
         info.update(grid_param=primary.name, grid=len(values))
         pc = layout.cols(primary.name)
+        ar = torch.arange(T, device=dev)
+
+        def at(x):                       # closed-form solve at per-texel log-values x [T]
+            th = theta.clone()
+            th[:, pc] = from_canonical(primary, torch.exp(x)[:, None].clamp(primary.low, primary.high))
+            return _linear_solve(model, layout, obs, th, lin, sep, loss, delta)
+
         costs, cands = [], []
         for val in values:
             th = theta.clone()
@@ -522,34 +639,43 @@ def _closed_form_init(model: Model, layout: Layout, obs: Observations, theta: Te
             cands.append(cand)
         costs_t = torch.stack(costs)                                       # [G, T]
         k = costs_t.argmin(0)
-        best = torch.stack(cands)[k, torch.arange(T, device=dev)]
-        best_cost = costs_t[k, torch.arange(T, device=dev)]
-        # parabolic refinement in log(value) through (k-1, k, k+1)
-        G = len(values)
-        km, kp = (k - 1).clamp(0, G - 1), (k + 1).clamp(0, G - 1)
-        ar = torch.arange(T, device=dev)
-        x = torch.log(values.clamp_min(1e-12))
-        x0, x1, x2 = x[km], x[k], x[kp]
-        c0, c1, c2 = costs_t[km, ar], costs_t[k, ar], costs_t[kp, ar]
-        den = (x0 - x1) * (x0 - x2) * (x1 - x2)
-        aa = (x2 * (c1 - c0) + x1 * (c0 - c2) + x0 * (c2 - c1))
-        bb = (x2 * x2 * (c0 - c1) + x1 * x1 * (c2 - c0) + x0 * x0 * (c1 - c2))
-        ok = (k > 0) & (k < G - 1) & (aa / den.where(den != 0, torch.ones_like(den)) > 0) & (den != 0)
-        xv = torch.where(ok, -bb / (2 * aa.where(aa != 0, torch.ones_like(aa))), x1).clamp(torch.minimum(x0, x2),
-                                                                                            torch.maximum(x0, x2))
-        th = best.clone()
-        th[:, pc] = from_canonical(primary, torch.exp(xv)[:, None].clamp(primary.low, primary.high))
-        cand, cost = _linear_solve(model, layout, obs, th, lin, sep, loss, delta)
-        better = cost < best_cost
-        best = torch.where(better[:, None], cand, best)
-        info["grid_refined"] = float(better.float().mean())
+        best = torch.stack(cands)[k, ar]
+        best_cost = costs_t[k, ar]
+        del cands
+        n_solves = len(values)
+        # coarse to fine (variable projection in 1-D: every trial re-solves the linear parameters):
+        # each round tries x ± h and the vertex of the parabola through the three costs, keeps
+        # the best of the four per texel and shrinks h by 3
+        xl = torch.log(values.clamp_min(1e-12))
+        h = (xl[1:] - xl[:-1]).mean() if len(values) > 1 else torch.tensor(0.5, dtype=dt)
+        x = xl[k]
+        lo, hi = math.log(max(primary.low, 1e-4)), math.log(primary.high)
+        for _ in range(refine):
+            xm, xp = (x - h).clamp(lo, hi), (x + h).clamp(lo, hi)
+            candm, cm = at(xm)
+            candp, cp = at(xp)
+            den = cm - 2 * best_cost + cp
+            ok = den > 0
+            xv = torch.where(ok, x + 0.5 * h * (cm - cp) / den.where(ok, torch.ones_like(den)), x)
+            xv = torch.minimum(torch.maximum(xv, xm), xp)
+            candv, cv = at(xv)
+            n_solves += 3
+            for c_, k_, x_ in ((candm, cm, xm), (candp, cp, xp), (candv, cv, xv)):
+                better = k_ < best_cost
+                best = torch.where(better[:, None], c_, best)
+                best_cost = torch.where(better, k_, best_cost)
+                x = torch.where(better, x_, x)
+            h = h / 3
+        info["grid_solves"] = n_solves
     return best, info
 
 
 def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: float | None = None,
-               iterations: int = 60, grid: int = 32, schedule: str = "joint", smoothness: float = 0.0,
-               init: Mapping[str, Tensor] | None = None, tol: float = 1e-10, observable_threshold: float = 0.01,
-               reproject: int = 0, progress: Callable[[str, int, float], None] | None = None) -> FitResult:
+               iterations: int = 40, grid: int = 32, refine: int = 3, schedule: str = "joint",
+               smoothness: float = 0.0, init: Mapping[str, Tensor] | None = None, tol: float = 1e-10,
+               observable_std: float | Mapping[str, float] | None = None, noise=NOISE, reproject: int = 0,
+               sampling: str = "nearest", joint_iterations: int = 4, cg_iterations: int = 25,
+               progress: Callable[[str, int, float], None] | None = None) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
     Objective: ``Σ_s weight_s Σ_c ρ(y_sc − L_sc)`` with nearest-texel sampling (each sample reads
@@ -563,7 +689,9 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         delta: Huber/L1 scale in radiance units (default 5 % of the median measured radiance).
         iterations: maximum LM iterations (all stages together).
         grid: number of values of the main nonlinear parameter (first scalar non-linear parameter,
-            e.g. roughness) tried by the closed-form initialisation; 0/1 = none.
+            e.g. roughness) tried by the closed-form initialisation (geometric spacing); 0/1 = none.
+        refine: coarse-to-fine rounds after the grid (each tries ± h and a parabola vertex around
+            every texel's best value, 3 closed-form solves, then h /= 3).
         schedule: "joint" (all parameters every iteration) or "staged" (Nielsen et al.: scale
             terms — linear parameters — first, then lobe shape — nonlinear ones — then all, each a
             third of the iterations).
@@ -572,8 +700,13 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         init: optional starting maps ``name → [H, W, C]`` (skips the grid for the nonlinear ones
             only if grid ≤ 1).
         tol: stop when the relative decrease of the total cost over an iteration is below this.
-        observable_threshold: a parameter is unobservable in a texel where changing it by 0.1
-            changes the RMS residual by less than this fraction of the texel's RMS radiance.
+        observable_std: threshold(s) on the marginal posterior std (canonical units) below which a
+            parameter is observable (:func:`posterior_std`, default :data:`OBSERVABLE_STD`).
+        noise: photo noise model ``(relative std, floor)`` of :func:`posterior_std`.
+        sampling: "nearest" (texels independent: per-texel LM is exact) or "bilinear" (the photos
+            read four texels per sample: the per-texel LM — with nearest sampling — initialises
+            :func:`refine_joint`, ``joint_iterations`` joint LM steps with ``cg_iterations`` PCG
+            iterations each).
         reproject: every this many iterations re-solve the linear parameters in closed form at the
             current nonlinear ones (a variable-projection step, 1 + #linear evaluations); 0 = never.
         progress: callback ``(stage, iteration, cost)``.
@@ -598,7 +731,12 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     t_grid = time.perf_counter()
     lin_specs = [s for s in layout.specs if s.linear]
     sep = {s.name: (s.channels == 3 and _separable(model, s, obs.dtype)) for s in lin_specs}
-    theta, info = _closed_form_init(model, layout, obs, theta, grid, loss, delta, sep)
+    if sampling not in ("nearest", "bilinear"):
+        raise SolverError(f"sampling must be 'nearest' or 'bilinear', got {sampling!r}")
+    if sampling == "bilinear" and obs.bilinear_index is None:
+        raise SolverError("sampling='bilinear' needs observations built with bilinear=True (observe_views)")
+    noise = _check_noise(noise)
+    theta, info = _closed_form_init(model, layout, obs, theta, grid, loss, delta, sep, refine)
     info["grid_s"] = time.perf_counter() - t_grid
     info["jacobian_passes"] = len(groups)
     observed = torch.zeros(T, dtype=torch.bool, device=dev)
@@ -711,15 +849,154 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     info["lm_s"] = time.perf_counter() - t_lm
     info["accepted"] = accepted
     info["stages"] = [s[0] for s in stages]
-    return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta,
-                     observable_threshold=observable_threshold, history=history, iterations=it, t0=t0,
-                     solver="fast", info=info)
+    if sampling == "bilinear" and joint_iterations > 0:
+        # per-texel parameters the photos do not determine vary wildly from texel to texel; under
+        # bilinear sampling they would mix into the neighbours' predictions, so they are replaced
+        # by pull-push fills of the observable ones before the joint refinement
+        canon = torch.cat([layout.unpack(theta)[s.name] for s in layout.specs], -1)
+        std, observed_n, _ = posterior_std(model, layout, obs, canon, groups, loss=loss, delta=delta, noise=noise)
+        for s_, o in zip(layout.specs, layout.offsets, strict=True):
+            sl = slice(o, o + s_.channels)
+            good = (observed_n & (std[:, sl].amax(-1) < std_threshold(s_, observable_std))).reshape(H, W)
+            if bool(good.any()) and not bool(good.all()):
+                filled_c = pull_push(canon[:, sl].reshape(H, W, -1), good).reshape(T, -1)
+                theta[:, sl] = from_canonical(s_, filled_c)
+        theta, jinfo = refine_joint(model, obs, layout, theta, groups, loss=loss, delta=delta,
+                                    iterations=joint_iterations, cg_iterations=cg_iterations, progress=progress)
+        info.update(jinfo)
+        history.append(jinfo["joint_history"][-1])
+    return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,
+                     noise=noise, history=history, iterations=it, t0=t0, solver="fast", info=info,
+                     sampling=sampling)
+
+
+# -- joint refinement with the bilinear footprint -------------------------------------------------
+def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor, groups, *, loss: str, delta: float,
+                 iterations: int = 4, cg_iterations: int = 25, sampling: str = "bilinear",
+                 progress: Callable[[str, int, float], None] | None = None) -> tuple[Tensor, dict]:
+    """Levenberg-Marquardt over *all* texels at once with the true (bilinear) sampling footprint.
+
+    With bilinear sampling a sample reads ``Σ_k w_sk p_k`` of four texels, so texels are coupled
+    and the per-texel solve is only an approximation. Starting from it, each outer iteration
+    linearises the full render (per-sample Jacobian ``J_s`` wrt canonical parameters, forward-mode
+    AD, stored once) and solves ``(JᵀWJ + λ·diag) δ = JᵀWr`` for all texels jointly by
+    preconditioned conjugate gradients (matrix-free: a product gathers δ at the four texels,
+    applies ``J_s``, ``J_sᵀW`` and scatters back with the weights; the preconditioner is the exact
+    per-texel P×P block). A step is kept when it lowers the total cost, else λ grows ×4 and the
+    step is re-solved. Variables are θ (the sigmoid/softplus parameterisation), with the same
+    trust region |Δθ| ≤ :data:`MAX_STEP` per texel as :func:`solve_fast`.
+
+    Returns:
+        ``(theta [T, P], info)`` with the cost history, accepted steps and time.
+    """
+    t0 = time.perf_counter()
+    if sampling == "bilinear":
+        if obs.bilinear_index is None:
+            raise SolverError("joint bilinear refinement needs observations built with bilinear=True")
+        idx, bw = obs.bilinear_index, obs.bilinear_weight.to(ACC)
+    else:
+        idx, bw = obs.texel[:, None], torch.ones(obs.n_samples, 1, dtype=ACC, device=obs.device)
+    T, P = theta.shape
+    K = idx.shape[1]
+    y = obs.radiance.to(ACC)
+    n_res = float(3 * obs.weight.to(ACC).sum())
+    eye = torch.eye(P, dtype=ACC, device=theta.device)
+
+    def gather(x):                                  # [T, P] → per-sample [S, P]
+        return (x[idx] * bw[..., None]).sum(-2)
+
+    def scatter(g):                                 # per-sample [S, P] → [T, P]
+        out = torch.zeros(T, g.shape[-1], dtype=ACC, device=g.device)
+        for k in range(K):
+            out.index_add_(0, idx[:, k], g * bw[:, k:k + 1])
+        return out
+
+    def canon_of(th):
+        prm = layout.unpack(th)
+        return torch.cat([prm[s.name] for s in layout.specs], -1)
+
+    def cost_of(th):
+        with torch.no_grad():
+            pred = obs.predict(model, layout.split(gather(canon_of(th)).to(obs.dtype))).to(ACC)
+        return float((robust_rho(y - pred, loss, delta).sum(-1) * obs.weight.to(ACC)).sum())
+
+    lam = 1e-3
+    cost = cost_of(theta)
+    history, accepted = [cost / n_res], []
+    for it in range(iterations):
+        with torch.no_grad():
+            canon = canon_of(theta)
+            dp = layout.dcanonical(theta)
+            pred, J = _jacobian(model, layout, obs, gather(canon), groups, canonical=True)
+            r = y - pred
+            w = obs.weight.to(ACC)[:, None] * _irls(r, loss, delta)                    # [S, 3]
+            g = scatter(torch.einsum("scp,sc->sp", J, w * r)) * dp                      # JᵀWr in θ
+            JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)
+            B = torch.zeros(T, P, P, dtype=ACC, device=theta.device)
+            for k in range(K):
+                B.index_add_(0, idx[:, k], JWJ * bw[:, k].square()[:, None, None])
+            del JWJ
+            B = B * dp[:, :, None] * dp[:, None, :]
+            diag = torch.diagonal(B, dim1=-2, dim2=-1).clone()
+            live = diag.sum(-1) > 0
+            diag = diag + 1e-9 * diag.mean(-1, keepdim=True).clamp_min(1e-30)
+
+            def matvec(v, lam_, dp=dp, J=J, w=w, live=live, diag=diag):
+                u = gather(v * dp)                                                    # [S, P]
+                ju = torch.einsum("scp,sp->sc", J, u) * w
+                out = scatter(torch.einsum("scp,sc->sp", J, ju)) * dp
+                return torch.where(live[:, None], out + lam_ * diag * v, v)
+
+            for _attempt in range(4):
+                M = B + lam * torch.diag_embed(diag)
+                M = torch.where(live[:, None, None], M, eye)
+                Minv, _ = torch.linalg.inv_ex(M)
+                rhs = torch.where(live[:, None], g, torch.zeros_like(g))
+                x = torch.zeros_like(rhs)
+                res = rhs.clone()
+                z = torch.einsum("tpq,tq->tp", Minv, res)
+                d = z.clone()
+                rz = float((res * z).sum())
+                rz0 = rz
+                for _ in range(cg_iterations):
+                    Ad = matvec(d, lam)
+                    dAd = float((d * Ad).sum())
+                    if not dAd > 0:
+                        break
+                    a = rz / dAd
+                    x = x + a * d
+                    res = res - a * Ad
+                    z = torch.einsum("tpq,tq->tp", Minv, res)
+                    rz_new = float((res * z).sum())
+                    if rz_new <= 1e-20 * rz0:
+                        break
+                    d = z + (rz_new / rz) * d
+                    rz = rz_new
+                big = x.abs().amax(-1, keepdim=True)
+                x = x * (MAX_STEP / big.clamp_min(MAX_STEP))
+                trial = theta + x
+                new_cost = cost_of(trial)
+                if new_cost < cost:
+                    theta, cost = trial, new_cost
+                    lam = max(lam / 3, 1e-9)
+                    accepted.append(True)
+                    break
+                lam *= 4
+                accepted.append(False)
+        history.append(cost / n_res)
+        if progress is not None:
+            progress("joint", it + 1, history[-1])
+        if len(history) > 1 and history[-2] - history[-1] <= 1e-6 * history[-2]:
+            break
+    return theta, {"joint_s": time.perf_counter() - t0, "joint_history": history, "joint_accepted": accepted,
+                   "joint_sampling": sampling}
 
 
 # -- generic path ---------------------------------------------------------------------------------
 def solve_adam(model: Model, obs: Observations, *, loss: str = "l2", delta: float | None = None,
                iterations: int = 500, lr: float = 0.05, sampling: str = "nearest",
-               init: Mapping[str, Tensor] | None = None, observable_threshold: float = 0.01,
+               init: Mapping[str, Tensor] | None = None, observable_std: float | Mapping[str, float] | None = None,
+               noise=NOISE,
                progress: Callable[[str, int, float], None] | None = None, time_budget_s: float | None = None
                ) -> FitResult:
     """Adam on all maps at once (any model, nearest or bilinear sampling).
@@ -756,6 +1033,6 @@ def solve_adam(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             break
     theta = theta.detach()
     groups = _groups(model, layout, obs.dtype)
-    return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta,
-                     observable_threshold=observable_threshold, history=history, iterations=it, t0=t0,
-                     solver="adam", info={"lr": lr, "sampling": sampling})
+    return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,
+                     noise=_check_noise(noise), history=history, iterations=it, t0=t0, solver="adam",
+                     info={"lr": lr, "sampling": sampling}, sampling=sampling)

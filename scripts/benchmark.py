@@ -5,20 +5,36 @@
 
 `models`: forward and forward+backward throughput (samples/s) of every registered model, and the
 error of each approximation the papers propose against the exact form it replaces.
+
+    python scripts/benchmark.py reconstruction [--scene default|small] [--rigs flash fixed] [--threads N]
+        [--adam LR:ITERS ...] [--out docs/benchmarks.md]
+
+`reconstruction`: end-to-end time against map error of the fast path (and its variants) and Adam
+(capture.benchmark.run_reconstruction_benchmark).
 Results go to stdout and, with --out, into the generated sections of docs/benchmarks.md.
 """
 
 import argparse
 
-from capture.benchmark import run_models_benchmark
+from capture.benchmark import run_models_benchmark, run_reconstruction_benchmark
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["models"])
+    ap.add_argument("what", choices=["models", "reconstruction"])
+    ap.add_argument("--scene", choices=["default", "small"], default="default")
+    ap.add_argument("--rigs", nargs="+", default=["flash", "fixed"])
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--adam", nargs="*", default=["0.05:200", "0.02:500"], help="Adam runs as LR:ITERATIONS")
+    ap.add_argument("--no-variants", action="store_true", help="fast path with default options only")
     ap.add_argument("--n", type=int, default=1 << 20, help="samples per evaluation")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--compile", nargs="*", default=None,
                     help="models to also time under torch.compile (default: the common ones)")
     ap.add_argument("--out", default=None, help="markdown file to write results into")
     args = ap.parse_args()
-    print(run_models_benchmark(n=args.n, device=args.device, compile_names=args.compile, out=args.out))
+    if args.what == "models":
+        print(run_models_benchmark(n=args.n, device=args.device, compile_names=args.compile, out=args.out))
+    else:
+        adam = tuple((float(a.split(":")[0]), int(a.split(":")[1])) for a in args.adam)
+        print(run_reconstruction_benchmark(out=args.out, scene=args.scene, rigs=tuple(args.rigs), threads=args.threads,
+                                           adam=adam, fast_variants=not args.no_variants))
