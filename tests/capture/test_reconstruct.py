@@ -51,14 +51,63 @@ def test_bad_input(lambert_ds, tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]     # no temporary left over
 
 
-@pytest.mark.slow
-def test_ggx_lambert_scene_refits_the_photos(tmp_path):
-    # nearest sampling, noise free: the fitted maps re-render the photos (measured PSNR ≥ 64 dB);
-    # the maps themselves are only identifiable where texels see enough distinct geometry, see
-    # docs/reconstruction.md for the measured map errors
-    root = tmp_path / "ggx"
-    make_synthetic(small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6, sampling="nearest"), root)
-    rep = reconstruct(root, model="ggx-lambert", out_dir=tmp_path / "o", progress=False, dtype=torch.float64,
-                      iterations=30)
-    assert min(v["psnr"] for v in rep.views) > 50
-    assert rep.coverage["unobservable"]["roughness"] > 0
+# Same-model, nearest-sampled, noise-free small scenes (64 px, 6 views, 16² maps, flash rig with
+# the lights 20° from the camera, float64). Measured on the 2-core machine (RMSE on the texels where
+# each map is observable — marginal posterior std below the threshold under a 1 % photo noise
+# model — and the observable fraction):
+#   ggx-lambert      albedo 6.7e-6 (68 %), f0 6.1e-8 (23 %), roughness 3.7e-5 (38 %)
+#   gotanda2012      albedo 4.6e-8 (33 %), f0 3.5e-8 (22 %), roughness 1.9e-4 (56 %)
+#   nielsen-mixture  albedo 3.1e-8 (100 %), roughness 5.5e-7 (6 %); specular, ior, mix: 0 %
+#   schuler          albedo 8.5e-7 (95 %), f0 4.1e-8 (28 %), roughness 7.9e-8 (36 %)
+# Thresholds: RMSE < 1e-3 (≥ 5× margin, the worst being gotanda2012's roughness) and the observable
+# fraction at least half the measured one. On *all* observed texels the errors are large (e.g.
+# ggx-lambert f0 0.12): the flash rig leaves trade-offs the photos do not resolve — those texels
+# are flagged, never reported as recovered.
+FAMILIES = {
+    "ggx-lambert": {"albedo": 0.68, "f0": 0.23, "roughness": 0.38},
+    "gotanda2012": {"albedo": 0.33, "f0": 0.22, "roughness": 0.56},
+    "nielsen-mixture": {"albedo": 1.0, "roughness": 0.06},
+    "schuler": {"albedo": 0.95, "f0": 0.28, "roughness": 0.36},
+}
+
+
+@pytest.mark.parametrize("name", sorted(FAMILIES))
+def test_model_family_regression(name, tmp_path):
+    root = tmp_path / name
+    make_synthetic(small_scene(name, image_size=64, texture_size=16, n_views=6, sampling="nearest"), root)
+    rep = reconstruct(root, model=name, out_dir=tmp_path / "o", progress=False, dtype=torch.float64)
+    assert rep.coverage["sampling"] == "nearest"
+    for k, frac in FAMILIES[name].items():
+        assert rep.coverage["observable_fraction"][k] >= 0.5 * frac, (k, rep.coverage["observable_fraction"])
+        assert rep.errors["maps_observable"][k]["rmse"] < 1e-3, (k, rep.errors["maps_observable"][k])
+    # gotanda2012 (f0 is not linear there: diffuse · (1 − F0)) leaves some texels in a local minimum
+    # (measured worst view 21.6 dB); their residual variance inflates the posterior std, so they are
+    # flagged rather than reported — the observable-texel errors above still hold
+    assert min(v["psnr"] for v in rep.views) > (20 if name == "gotanda2012" else 60)
+
+
+def test_fixed_lights_resolve_what_the_flash_rig_cannot(tmp_path):
+    # the same GGX + Lambert scene under two world-fixed lights 45° off their cameras: measured RMSE
+    # on ALL observed texels albedo 2.8e-5, f0 1.4e-3, roughness 3.3e-4 (flash rig: 0.024, 0.12, 0.10)
+    root = tmp_path / "fixed"
+    make_synthetic(small_scene("ggx-lambert", image_size=64, texture_size=16, n_views=6, sampling="nearest",
+                               light_rig="fixed", light_offset_deg=45.0), root)
+    rep = reconstruct(root, model="ggx-lambert", out_dir=tmp_path / "o", progress=False, dtype=torch.float64)
+    e = rep.errors["maps"]
+    assert e["albedo"]["rmse"] < 1e-3 and e["f0"]["rmse"] < 0.01 and e["roughness"]["rmse"] < 0.005, e
+
+
+def test_errors_shrink_as_views_are_added_with_noise(tmp_path):
+    # Lambert, shot + read noise, 8-bit sRGB PNG photos (quantised), nearest sampling, 32² maps:
+    # measured albedo RMSE on observed texels 0.0234 (2 views) → 0.0075 (8 views); ratio ≤ 0.75 required
+    from capture.photo import PhotoModel
+
+    errs = []
+    for n in (2, 8):
+        root = tmp_path / f"v{n}"
+        photo = PhotoModel(full_well=2000.0, read_noise=0.002, clip=True, encoding="srgb", bits=8)
+        make_synthetic(small_scene("lambert", image_size=64, texture_size=16, n_views=n, sampling="nearest",
+                                   photo=photo, elevations=(30.0,)), root)
+        rep = reconstruct(root, model="lambert", out_dir=tmp_path / f"o{n}", progress=False)
+        errs.append(rep.errors["maps"]["albedo"]["rmse"])
+    assert errs[1] < 0.75 * errs[0], errs
