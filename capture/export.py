@@ -55,7 +55,9 @@ __all__ = [
 ATLAS_FORMAT = "shadecap-schuler-atlas/1"
 #: Canonical maps of a reconstruction folder and their channel counts.
 MAP_CHANNELS = {"albedo": 3, "f0": 3, "roughness": 1, "absorption": 3, "mask": 1, "coverage": 1}
-REQUIRED = ("albedo", "f0", "roughness")
+REQUIRED = ("albedo",)
+#: Values of maps a diffuse-only model (e.g. Lambert) does not have: no specular reflection.
+DIFFUSE_ONLY_DEFAULTS = {"f0": 0.0, "roughness": 1.0}
 _RANGES = {"albedo": (0.0, 1.0), "f0": (0.0, 1.0), "roughness": (0.0, 1.0), "mask": (0.0, 1.0),
            "coverage": (0.0, 1.0), "absorption": (0.0, math.inf)}
 #: KHR_materials_specular: f0 = min(F0(ior) · specularColorFactor · texture, 1); with ior 1.5,
@@ -98,6 +100,8 @@ def _to_hwc(x, name: str, where: str) -> Tensor:
     if x.dim() == 2:
         x = x[..., None]
     want = MAP_CHANNELS.get(name)
+    if want == 1 and x.dim() == 3 and x.shape[-1] in (3, 4) and bool((x[..., :3] == x[..., :1]).all()):
+        x = x[..., :1]  # a grey map stored as RGB(A), as image tools write single-channel data
     if x.dim() != 3 or (want is not None and x.shape[-1] not in (want, 1)):
         raise ExportError(f"{where}: map '{name}' must have shape [H, W, {want}], got {tuple(x.shape)}")
     if want is not None and x.shape[-1] != want:
@@ -123,6 +127,14 @@ def _prepare(mat: Material) -> dict[str, Tensor]:
         have = sorted(k for k in mat.maps if mat.maps[k] is not None)
         raise ExportError(f"{where}: missing map(s) {missing}; have {have}")
     maps = {k: _to_hwc(v, k, where) for k, v in mat.maps.items() if v is not None and k in MAP_CHANNELS}
+    absent = [k for k in DIFFUSE_ONLY_DEFAULTS if k not in maps]
+    if absent:
+        h, w = maps["albedo"].shape[:2]
+        for k in absent:
+            maps[k] = torch.full((h, w, MAP_CHANNELS[k]), DIFFUSE_ONLY_DEFAULTS[k], dtype=maps["albedo"].dtype)
+        warnings.warn(f"{where}: no {absent} map (a diffuse-only model); exported as "
+                      f"{ {k: DIFFUSE_ONLY_DEFAULTS[k] for k in absent} }, i.e. no specular reflection",
+                      ExportWarning, stacklevel=3)
     sizes = {k: tuple(v.shape[:2]) for k, v in maps.items()}
     target = max(sizes.values(), key=lambda s: (s[0] * s[1], s))
     odd = {k: s for k, s in sizes.items() if s != target}
@@ -168,6 +180,9 @@ def load_reconstruction(folder, name: str | None = None) -> Material:
             maps[key] = imageio.read_exr(p)
         except imageio.ImageIOError as err:
             raise ExportError(f"{p}: cannot read map '{key}': {err}") from err
+        if key == "coverage" and maps[key].shape[-1] > 1:
+            # capture.reconstruct writes per-texel counts (samples, views, ...); export needs observed or not
+            maps[key] = (maps[key][..., :1] > 0).to(maps[key].dtype)
     report = {}
     rp = folder / "report.json"
     if rp.exists():

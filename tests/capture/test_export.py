@@ -183,18 +183,26 @@ def test_atlas_too_small_names_size_needed(tmp_path):
 def test_missing_unreadable_and_existing(tmp_path):
     rec = tmp_path / "rec"
     E.write_maps(_maps(8, 8, 0), rec, previews=False)
-    (rec / "f0.exr").unlink()
-    with pytest.raises(E.ExportError, match=r"f0\.exr.*required map 'f0' is missing"):
+    (rec / "albedo.exr").rename(rec / "albedo.bak")
+    with pytest.raises(E.ExportError, match=r"albedo\.exr.*required map 'albedo' is missing"):
         E.export_atlas_dirs([rec], tmp_path / "out")
-    E.write_maps({"f0": torch.rand(8, 8, 3)}, rec, previews=False)
+    (rec / "albedo.bak").rename(rec / "albedo.exr")
+    # a diffuse-only reconstruction (no f0, no roughness) exports with K_specular = 0 and a warning
+    (rec / "f0.exr").unlink()
+    (rec / "roughness.exr").unlink()
+    with pytest.warns(E.ExportWarning, match="diffuse-only"):
+        E.export_atlas_dirs([rec], tmp_path / "diffuse")
+    back = E.read_atlas(tmp_path / "diffuse")["rec"]
+    assert back["f0"].abs().max().item() == 0.0
+    E.write_maps({"f0": torch.rand(8, 8, 3), "roughness": torch.rand(8, 8, 1)}, rec, previews=False)
     data = (rec / "albedo.exr").read_bytes()
     (rec / "albedo.exr").write_bytes(data[: len(data) // 2])
     with pytest.raises(E.ExportError, match=r"albedo\.exr.*cannot read map 'albedo'"):
         E.export_atlas_dirs([rec], tmp_path / "out")
     with pytest.raises(E.ExportError, match="does not exist"):
         E.load_reconstruction(tmp_path / "nope")
-    with pytest.raises(E.ExportError, match=r"missing map\(s\) \['roughness'\]"):
-        E.export_atlas({"m": {"albedo": torch.rand(2, 2, 3), "f0": torch.rand(2, 2, 3)}}, tmp_path / "o")
+    with pytest.raises(E.ExportError, match=r"missing map\(s\) \['albedo'\]"):
+        E.export_atlas({"m": {"f0": torch.rand(2, 2, 3), "roughness": torch.rand(2, 2, 1)}}, tmp_path / "o")
     bad = _maps(4, 4, 0)
     bad["f0"][1, 1, 1] = float("nan")
     with pytest.raises(E.ExportError, match="'f0' has 1 NaN"):

@@ -1,0 +1,39 @@
+"""The shadecap command line: listing, user errors (one line, exit 2, nothing written), the demo."""
+
+import pytest
+
+import materials
+from capture.cli import main
+
+
+def test_models_lists_every_model_with_its_parameters(capsys):
+    assert main(["models"]) == 0
+    out = capsys.readouterr().out
+    for name in materials.available():
+        assert name in out
+    assert "params: albedo, f0, roughness" in out
+
+
+def test_user_errors_print_one_line_and_exit_2(tmp_path, capsys):
+    assert main(["reconstruct", str(tmp_path / "missing"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("shadecap reconstruct: error:") and "missing" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_unknown_model_is_named_with_the_alternatives(tmp_path, capsys):
+    assert main(["synth", "--config", "small", "--model", "no-such-model", "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "no-such-model" in err and "lambert" in err
+    assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.slow
+def test_small_demo_runs_end_to_end(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--small", "--model", "lambert", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "[3/3]" in text and "total" in text
+    for rel in ("dataset/scene.json", "recon/albedo.exr", "recon/report.json", "atlas/atlas.json"):
+        assert (out / rel).exists(), rel
+    assert main(["demo", "--small", "--out", str(out)]) == 2  # exists, no --force
