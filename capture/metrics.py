@@ -3,6 +3,8 @@
 * :func:`map_errors` — per map RMSE and max |error| over a texel mask (normally the observed
   texels, optionally also excluding texels where the parameter was unobservable), overall and
   per material region of a region-id map.
+* :func:`observability_errors` — the same on all observed texels *and* on the texels where each
+  map is observable, with the observable fraction (what the report's error table shows).
 * :func:`image_metrics` — PSNR and SSIM (``kornia.metrics``) of a re-rendered view against its
   photo, over the image (background is 0 in both), with the peak taken as the photo's maximum.
 """
@@ -14,7 +16,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-__all__ = ["map_errors", "image_metrics", "MetricsError"]
+__all__ = ["map_errors", "observability_errors", "image_metrics", "MetricsError"]
 
 
 class MetricsError(ValueError):
@@ -68,6 +70,28 @@ def map_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], mask: Tenso
                 row["regions"][key] = _stats(d[r])
         out[name] = row
     return out
+
+
+def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], observed: Tensor,
+                         unobservable: Mapping[str, Tensor]) -> dict:
+    """Per map: errors on all observed texels, on the observed texels where the map is observable,
+    and the observable fraction of the observed texels.
+
+    Args:
+        maps: fitted maps name → ``[H, W, C]`` (the solver's raw values, not the filled ones);
+        gt: true maps; observed: ``[H, W]`` bool; unobservable: name → ``[H, W]`` bool.
+
+    Returns:
+        ``{name: {"observed": {rmse, max, texels}, "observable": {...}, "observable_fraction": f}}``.
+    """
+    if observed.dim() != 2:
+        raise MetricsError(f"observed must be [H, W] bool, got {tuple(observed.shape)}")
+    all_ = map_errors(maps, gt, observed)
+    obs_ = map_errors(maps, gt, observed, exclude=unobservable)
+    n = max(int(observed.sum()), 1)
+    return {k: {"observed": all_[k], "observable": obs_[k],
+                "observable_fraction": float((observed & ~unobservable[k]).sum()) / n if k in unobservable else 1.0}
+            for k in all_}
 
 
 def image_metrics(rendered: Tensor, photo: Tensor, mask: Tensor | None = None) -> dict:

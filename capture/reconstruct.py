@@ -16,12 +16,14 @@
    temporary folder next to ``out_dir`` that is renamed into place at the end, so a reader never
    sees a half-written output and a failure leaves nothing behind.
 
-Unobservable parameters (decision): a parameter that no photo constrains in a texel (e.g.
-roughness and f0 where no highlight was seen) is *not* an error: it is filled from observable
-neighbours (pull-push), flagged in ``unobservable_<name>.png`` and in ``confidence_<name>.exr``
-(NaN), and counted in the report. Only when a parameter is unobservable in *every* observed texel
-does the report carry a warning (``warnings``) saying so, because then every value of that map is
-a fill, not a measurement.
+Unobservable parameters (decision): a parameter the photos do not pin down in a texel — its
+marginal posterior std (:func:`capture.solvers.posterior_std`) at or above the threshold, e.g.
+roughness and f0 where no highlight was seen, or albedo and f0 trading off — is *not* an error: it
+is filled from observable neighbours (pull-push), flagged in ``unobservable_<name>.png``, its std
+written to ``confidence_<name>.exr`` (NaN where unobserved), and counted in the report; errors
+against ground truth are reported on all observed texels and on the observable ones. Only when a
+parameter is unobservable in *every* observed texel does the report carry a warning (``warnings``)
+saying so, because then every value of that map is a fill, not a measurement.
 """
 
 from __future__ import annotations
@@ -118,7 +120,7 @@ def _grid_image(rows: list[list[Tensor]]) -> Tensor:
 def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool = False, solver: str = "fast",
                 loss: str = "l2", texture_size: int | None = None, dtype: torch.dtype = torch.float32,
                 progress: bool = True, auto_gain: float = 0.05, max_grid_views: int = 8, sampling: str | None = None,
-                **options) -> Report:
+                threads: int | None = None, **options) -> Report:
     """Recover the material maps of a dataset and write them to ``out_dir`` (see module docstring).
 
     Args:
@@ -136,6 +138,9 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             ground truth was rendered (``gt.render.sampling``), else "bilinear" (a texture-mapped
             surface). Bilinear runs the per-texel solve and then the joint refinement
             (:func:`capture.solvers.refine_joint`).
+        threads: torch intra-op threads for this call (restored after); None = leave as is. On a
+            machine where another process holds a core, 1 thread is much faster than 2 (measured
+            ~70× on small index_add ops: OpenMP threads wait for the busy core).
         **options: passed to the solver (iterations, grid, schedule, smoothness, delta, lr, ...).
 
     Returns:
@@ -145,6 +150,17 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         DatasetError: the dataset does not validate. ReconstructionError: unknown model (lists the
         names), output folder exists, bad solver/loss, no valid observation.
     """
+    if threads is not None:
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise ReconstructionError(f"threads must be a positive integer or None, got {threads!r}")
+        old = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            return reconstruct(dataset_path, model, out_dir, force=force, solver=solver, loss=loss,
+                               texture_size=texture_size, dtype=dtype, progress=progress, auto_gain=auto_gain,
+                               max_grid_views=max_grid_views, sampling=sampling, threads=None, **options)
+        finally:
+            torch.set_num_threads(old)
     from capture.dataset import load_dataset
     from renderer.gbuffer import render_gbuffer
     from renderer.shading import prepare
@@ -273,7 +289,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     # -- metrics --------------------------------------------------------------------------------
     t = time.perf_counter()
-    from .metrics import image_metrics, map_errors
+    from .metrics import image_metrics, map_errors, observability_errors
 
     if ds.gt is not None:
         # fitted values (raw) on every observed texel, and on the texels where each map is observable
@@ -281,6 +297,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         report.errors["maps_observable"] = map_errors(fit.raw, ds.gt.maps, observed, ds.gt.regions,
                                                       ds.gt.region_names, exclude=fit.unobservable)
         report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
+        report.errors["observability"] = observability_errors(fit.raw, ds.gt.maps, observed, fit.unobservable)
         report.errors["gt_model"] = ds.gt.model
     renders = []
     with torch.no_grad():

@@ -26,11 +26,15 @@ Parameters stay in range through their parameterisation, not by clamping: a para
 (:class:`Layout`). The closed-form initialisation clips the linear solution into the range once,
 before it is mapped to θ.
 
-Both return a :class:`FitResult`: the canonical maps, which texels were observed, which
-parameters were *unobservable* where (e.g. roughness where no highlight was seen: the residual's
-sensitivity to a 0.1 change of the parameter is below ``observable_threshold`` of the texel's
-signal), per-parameter confidence (posterior standard deviation from ``(JᵀWJ)⁻¹``, NaN where
-unobserved or unobservable), and holes filled by pull-push (:func:`pull_push`) and flagged.
+Both return a :class:`FitResult`: the canonical maps, which texels were observed, and per
+parameter the marginal posterior standard deviation (:func:`posterior_std`: Gauss-Newton normal
+matrix at the solution, a photo noise model of 1 % of the signal, inflated by the residual
+variance where the fit is worse than that) — the confidence maps. A parameter is *unobservable*
+in a texel where that std is at or above its threshold (:data:`OBSERVABLE_STD`: 0.01 for albedo
+and f0, 0.02 for roughness, in canonical units); this catches trade-offs between parameters
+(albedo vs f0, f0·α² of a GGX tail without a highlight) that a one-parameter test misses.
+Unobservable values and unobserved texels are filled by pull-push (:func:`pull_push`) and
+flagged; ``FitResult.raw`` keeps the fitted values.
 """
 
 from __future__ import annotations
