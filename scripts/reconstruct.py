@@ -25,6 +25,9 @@ def main(argv=None) -> int:
     ap.add_argument("--grid", type=int, default=None, help="fast path: grid size of the closed-form initialisation")
     ap.add_argument("--schedule", choices=("joint", "staged"), default=None)
     ap.add_argument("--smoothness", type=float, default=None)
+    ap.add_argument("--sampling", choices=("nearest", "bilinear"), default=None,
+                    help="how samples read the maps (default: as the dataset's ground truth, else bilinear)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (1 is faster on a loaded machine)")
     ap.add_argument("--float64", action="store_true", help="evaluate the model in float64")
     ap.add_argument("--force", action="store_true")
     a = ap.parse_args(argv)
@@ -35,7 +38,8 @@ def main(argv=None) -> int:
     opts = {k: v for k, v in (("iterations", a.iterations), ("grid", a.grid), ("schedule", a.schedule),
                               ("smoothness", a.smoothness)) if v is not None}
     reconstruct(a.dataset, model=a.model, out_dir=a.out, force=a.force, solver=a.solver, loss=a.loss,
-                texture_size=a.tex, dtype=torch.float64 if a.float64 else torch.float32, **opts)
+                texture_size=a.tex, dtype=torch.float64 if a.float64 else torch.float32, sampling=a.sampling,
+                threads=a.threads, **opts)
     print((Path(a.out) / "summary.txt").read_text())
     return 0
 
