@@ -675,10 +675,10 @@ def _closed_form_init(model: Model, layout: Layout, obs: Observations, theta: Te
 
 
 def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: float | None = None,
-               iterations: int = 40, grid: int = 32, refine: int = 3, schedule: str = "joint",
+               iterations: int | None = None, grid: int = 32, refine: int = 3, schedule: str = "joint",
                smoothness: float = 0.0, init: Mapping[str, Tensor] | None = None, tol: float = 1e-10,
                observable_std: float | Mapping[str, float] | None = None, noise=NOISE, reproject: int = 0,
-               sampling: str = "nearest", joint_iterations: int = 4, cg_iterations: int = 25,
+               sampling: str = "nearest", joint_iterations: int = 2, cg_iterations: int = 25,
                progress: Callable[[str, int, float], None] | None = None) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
@@ -691,7 +691,9 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         model: the material model; obs: the observations.
         loss: "l2", "huber" or "l1" (robust ones by IRLS reweighting each iteration).
         delta: Huber/L1 scale in radiance units (default 5 % of the median measured radiance).
-        iterations: maximum LM iterations (all stages together).
+        iterations: maximum per-texel LM iterations (all stages together); None = 40 with nearest
+            sampling, 10 with bilinear (there the per-texel fit only initialises the joint
+            refinement; measured on the default scene: 40 → 10 iterations saves ~10 s, same errors).
         grid: number of values of the main nonlinear parameter (first scalar non-linear parameter,
             e.g. roughness) tried by the closed-form initialisation (geometric spacing); 0/1 = none.
         refine: coarse-to-fine rounds after the grid (each tries ± h and a parabola vertex around
@@ -724,6 +726,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         raise SolverError(f"schedule must be 'joint' or 'staged', got {schedule!r}")
     if not (smoothness >= 0 and math.isfinite(smoothness)):
         raise SolverError(f"smoothness must be ≥ 0, got {smoothness!r}")
+    if iterations is None:
+        iterations = 10 if sampling == "bilinear" else 40
     if iterations < 0 or grid < 0:
         raise SolverError(f"iterations and grid must be ≥ 0, got {iterations}, {grid}")
     delta = _default_delta(obs, loss, delta)
