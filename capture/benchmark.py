@@ -108,9 +108,11 @@ def model_throughput(
             fn(*geo, *p.values())
 
     leaves = [x.detach().clone().requires_grad_() for x in p.values()]
+    # A model without parameters (the measured NBRDF) is differentiated with respect to the geometry.
+    geo_b = geo if leaves else tuple(x.detach().clone().requires_grad_() for x in geo)
 
     def fwd_bwd():
-        out = fn(*geo, *leaves)
+        out = fn(*geo_b, *leaves)
         out.sum().backward()
 
     t_f = _time(fwd, repeats, device)
