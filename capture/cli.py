@@ -127,8 +127,10 @@ def _cmd_demo(args) -> int:
         raise FileExistsError(f"{out} exists; pass --force to replace it or choose another --out")
     cfg = small_scene("ggx-lambert", image_size=128, texture_size=64, n_views=8) if args.small else default_scene()
     t0 = time.perf_counter()
-    print(f"[1/3] synthesising the default scene ({cfg.n_views} views of {cfg.image_size} px, "
-          f"{cfg.texture_size}² maps, model {cfg.model}) → {out / 'dataset'}")
+    size = lambda x: f"{x[0]}×{x[1]}" if isinstance(x, (tuple, list)) else f"{x}×{x}"  # noqa: E731
+    model_name = cfg.model.get("name", cfg.model) if isinstance(cfg.model, dict) else cfg.model
+    print(f"[1/3] synthesising the {'small' if args.small else 'default'} scene ({cfg.n_views} views of "
+          f"{size(cfg.image_size)} px, {size(cfg.texture_size)} maps, model {model_name}) → {out / 'dataset'}")
     make_synthetic(cfg, out / "dataset", overwrite=True)
     t1 = time.perf_counter()
     print(f"      {t1 - t0:.1f} s\n[2/3] reconstructing with model {args.model} → {out / 'recon'}")
