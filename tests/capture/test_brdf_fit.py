@@ -87,7 +87,6 @@ def test_mixture_parameters_recovered_from_its_own_data():
     assert 0 <= r2.params["mix"].item() <= 1 and (r2.params["specular"] >= 0).all()
 
 
-@pytest.mark.skipif("nielsen-phong" not in materials.available(), reason="nielsen-phong not registered yet")
 def test_registered_phong_recovered_from_its_own_data():
     s = F.make_samples(resolution=16, dtype=D64)
     m = materials.get("nielsen-phong")
@@ -100,7 +99,6 @@ def test_registered_phong_recovered_from_its_own_data():
 
 
 @needs_data
-@pytest.mark.skipif("nielsen-phong" not in materials.available(), reason="nielsen-phong not registered yet")
 def test_staged_procedure_beats_single_stage_from_a_bad_guess_on_nickel():
     """Nielsen's claim, checked where it holds in our measurements (see capture/brdf_fit.py: it does not hold for
     every model/material; joint fits with restarts are as good or better in all 12 cases we ran)."""
