@@ -122,6 +122,11 @@ class SyntheticConfig:
         sampling: map sampling, "bilinear" (default) or "nearest" (each sample reads one texel).
         shadows: cast shadow rays.
         seed: seeds the random rig and the photo noise (view i uses seed·1000003 + i).
+        materials: number of distinct materials in the ground truth, 1–6: the first ``materials`` rows
+            of the region table (module docstring), as that many stripes in u.
+        uniform: parameter name → value (a number, or one per channel) written into every texel of the
+            ground truth after the procedural maps — e.g. ``{"roughness": 0.02}`` for a mirror-like
+            scene; the value must lie in the parameter's range.
     """
 
     mesh: str = "uv_sphere"
@@ -144,6 +149,8 @@ class SyntheticConfig:
     sampling: str = "bilinear"
     shadows: bool = True
     seed: int = 0
+    materials: int = len(REGION_NAMES)
+    uniform: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if isinstance(self.photo, dict):
@@ -179,17 +186,41 @@ class SyntheticConfig:
             raise SyntheticError(f"light_irradiance must be positive, got {self.light_irradiance}")
         if not 0 <= self.light_offset_deg < 90:
             raise SyntheticError(f"light_offset_deg must lie in [0, 90), got {self.light_offset_deg}")
+        if (isinstance(self.materials, bool) or not isinstance(self.materials, int)
+                or not 1 <= self.materials <= len(REGION_NAMES)):
+            raise SyntheticError(f"materials must be an integer in [1, {len(REGION_NAMES)}], got {self.materials!r}")
         try:
             self.model = model_spec(self.model, self.model_options)
             self.model_options = {}
-            model_from_spec(self.model)  # unknown names and options fail here, not after rendering
+            model = model_from_spec(self.model)  # unknown names and options fail here, not after rendering
         except ValueError as exc:
             raise SyntheticError(f"model: {exc}") from None
+        if not isinstance(self.uniform, Mapping):
+            raise SyntheticError(f"uniform must be a dict parameter name → value, got {type(self.uniform).__name__}")
+        self.uniform = {k: _uniform_value(model, k, v) for k, v in self.uniform.items()}
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["photo"] = self.photo.to_dict()
         return d
+
+
+def _uniform_value(model: Model, name: str, value) -> list[float]:
+    """Validate one ``uniform`` entry against the model; return it as a list of channel values."""
+    if name not in model.param_names:
+        raise SyntheticError(f"uniform: model '{model.name}' has no parameter '{name}'; it has "
+                             f"{list(model.param_names)}")
+    spec = model.spec(name)
+    vals = [value] if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+    try:
+        vals = [float(x) for x in vals]
+    except (TypeError, ValueError):
+        raise SyntheticError(f"uniform: '{name}' must be a number or {spec.channels} numbers, got {value!r}") from None
+    if len(vals) not in (1, spec.channels):
+        raise SyntheticError(f"uniform: '{name}' has {spec.channels} channel(s), got {len(vals)} values")
+    if any(not (spec.low <= x <= spec.high) for x in vals):
+        raise SyntheticError(f"uniform: '{name}' = {vals} is outside its range [{spec.low}, {spec.high}]")
+    return vals
 
 
 def _size(x, name) -> tuple[int, int]:
@@ -341,12 +372,15 @@ def _region_table(has_f0: bool) -> dict[int, dict[str, Tensor]]:
     return table
 
 
-def procedural_maps(model: Model, size: int | tuple[int, int] = 256) -> tuple[dict[str, Tensor], Tensor]:
+def procedural_maps(model: Model, size: int | tuple[int, int] = 256, n_materials: int = len(REGION_NAMES),
+                    uniform: Mapping[str, object] | None = None) -> tuple[dict[str, Tensor], Tensor]:
     """Ground-truth maps for ``model`` and the region-id map (see the module docstring's table).
 
     Args:
         model: any registered model; the maps hold exactly ``model.params``.
         size: ``T`` or ``(W, H)`` texels.
+        n_materials: how many of the table's regions (the first ones), as that many stripes in u.
+        uniform: parameter name → value(s) written into every texel afterwards (:class:`SyntheticConfig`).
 
     Returns:
         ``(maps, regions)``: maps name → ``[H, W, C]`` float32 (C = the parameter's channels, values
@@ -358,7 +392,10 @@ def procedural_maps(model: Model, size: int | tuple[int, int] = 256) -> tuple[di
     W, H = _size(size, "size")
     uv = texel_centers(H, W, dtype=torch.float64)
     u, v = uv[..., 0], uv[..., 1]
-    n_reg = len(REGION_NAMES)
+    if isinstance(n_materials, bool) or not isinstance(n_materials, int) or not 1 <= n_materials <= len(REGION_NAMES):
+        raise SyntheticError(f"procedural_maps: n_materials must be an integer in [1, {len(REGION_NAMES)}], "
+                             f"got {n_materials!r}")
+    n_reg = n_materials
     stripe = torch.clamp(torch.floor(u * n_reg), 0, n_reg - 1).long()
     regions = stripe + 1
     has_f0 = "f0" in model.param_names
@@ -391,6 +428,9 @@ def procedural_maps(model: Model, size: int | tuple[int, int] = 256) -> tuple[di
             alt = torch.tensor([0.85, 0.75, 0.55], dtype=torch.float64)
             sel = (regions == 1) & checker
             out[sel] = alt[:C] if C == 3 else alt.mean().reshape(1)
+        if uniform and spec.name in uniform:
+            vals = _uniform_value(model, spec.name, uniform[spec.name])
+            out[:] = torch.tensor(vals, dtype=torch.float64).expand(C)
         maps[spec.name] = out.clamp(spec.low, spec.high).to(torch.float32)
     return maps, regions
 
@@ -443,7 +483,7 @@ def build_scene(config: SyntheticConfig) -> Scene:
         model = model_from_spec(config.model)
     except ValueError as exc:
         raise SyntheticError(f"model: {exc}") from None
-    maps, regions = procedural_maps(model, config.texture_size)
+    maps, regions = procedural_maps(model, config.texture_size, config.materials, config.uniform)
     views = [View(c, ls, config.photo.exposure) for c, ls in zip(cams, lights, strict=True)]
     return Scene(mesh, views, model, config.model, maps, regions)
 

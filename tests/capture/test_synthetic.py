@@ -214,7 +214,24 @@ def test_default_scene_matches_the_readme_demo():
     (dict(sampling="cubic"), "sampling"), (dict(image_size=(0, 4)), "image_size"),
     (dict(model="nope"), "unknown model"),
     (dict(elevations=(95.0,)), "elevations"), (dict(light_irradiance=-1.0), "light_irradiance"),
+    (dict(materials=0), "materials"), (dict(materials=7), "materials"),
+    (dict(uniform={"sheen": 0.5}), "no parameter 'sheen'"), (dict(uniform={"roughness": 1.5}), "outside its range"),
+    (dict(uniform={"f0": [0.1, 0.2]}), "3 channel"), (dict(uniform={"albedo": "red"}), "number"),
 ])
 def test_config_validation(bad, match):
     with pytest.raises(SyntheticError, match=match):
         SyntheticConfig(**bad)
+
+
+def test_number_of_materials_and_uniform_overrides():
+    model = materials.get("ggx-lambert")
+    maps, regions = procedural_maps(model, 48, n_materials=2)
+    assert set(torch.unique(regions).tolist()) == {1, 2}
+    # stripe 2 is the smooth dielectric of the table: r = 0.25 everywhere in it
+    assert torch.allclose(maps["roughness"][regions == 2], torch.tensor(0.25))
+    maps, _ = procedural_maps(model, 48, uniform={"roughness": 0.02, "f0": [1.0, 1.0, 1.0]})
+    assert torch.equal(maps["roughness"], torch.full_like(maps["roughness"], 0.02))
+    assert torch.equal(maps["f0"], torch.ones_like(maps["f0"]))
+    assert not torch.equal(maps["albedo"], torch.ones_like(maps["albedo"]))  # untouched maps stay procedural
+    cfg = SyntheticConfig(model="ggx-lambert", uniform={"albedo": 0.0}, materials=3)
+    assert cfg.uniform == {"albedo": [0.0]} and cfg.to_dict()["materials"] == 3
