@@ -357,9 +357,91 @@ def reconstruction_run(dataset, model: str = "ggx-lambert", solver: str = "fast"
     }
 
 
+def plot_reconstruction_pareto(rows: list[dict], out_png, caption: str = "") -> None:
+    """Time against error of reconstruction rows: one panel per map, x = end-to-end seconds, y = RMSE on the
+    texels where the map is observable (filled markers) and on all observed texels (open markers), one colour
+    per solver setting, one marker shape per light rig."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    maps = ("albedo", "f0", "roughness")
+    labels = list(dict.fromkeys(r["label"] for r in rows))
+    rigs = list(dict.fromkeys(r["rig"] for r in rows))
+    colours = plt.get_cmap("tab10")
+    shapes = "osD^v"
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.6), squeeze=False)
+    for ax, m in zip(axes[0], maps, strict=True):
+        for r in rows:
+            c = colours(labels.index(r["label"]) % 10)
+            mk = shapes[rigs.index(r["rig"]) % len(shapes)]
+            ax.plot(r["seconds"], r["rmse_observable"].get(m, float("nan")), mk, color=c, ms=6)
+            ax.plot(r["seconds"], r["rmse_observed"].get(m, float("nan")), mk, mfc="none", color=c, ms=6)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("end-to-end seconds")
+        ax.set_title(m, fontsize=10)
+        ax.grid(alpha=0.3, which="both")
+    axes[0][0].set_ylabel("RMSE")
+    handles = [plt.Line2D([], [], color=colours(i % 10), marker="o", ls="", label=lab) for i, lab in enumerate(labels)]
+    handles += [plt.Line2D([], [], color="k", marker=shapes[i % len(shapes)], ls="", mfc="none", label=f"rig {rig}")
+                for i, rig in enumerate(rigs)]
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 4), fontsize=7, frameon=False)
+    fig.suptitle((caption or "Reconstruction: time against error")
+                 + "\nRMSE on texels where the map is observable (filled) and on all observed texels (open)",
+                 fontsize=9)
+    fig.tight_layout(rect=(0, 0.12, 1, 0.97))
+    fig.savefig(out_png, dpi=90)
+    plt.close(fig)
+
+
+#: Sweeps of the reconstruction benchmark: (label, SyntheticConfig field, values) on the default scene, flash rig.
+RECONSTRUCTION_SWEEPS = (
+    ("texture resolution T (T² maps)", "texture_size", (64, 128, 256)),
+    ("number of materials", "materials", (1, 2, 3, 6)),
+)
+
+
+def reconstruction_sweeps(workdir: str | None = None, threads: int | None = None, sweeps=RECONSTRUCTION_SWEEPS,
+                          base=None) -> list[str]:
+    """Markdown lines: end-to-end time and error of the fast path as one scene axis varies (fitted growth exponent
+    of the time, and of the solve stage alone)."""
+    import tempfile
+    from dataclasses import replace
+    from pathlib import Path
+
+    from .scaling import growth_exponent
+    from .synthetic import default_scene, make_synthetic
+
+    base = base or default_scene()
+    lines = ["| axis | value | s (solve s) | albedo RMSE obs. / obsv. | f0 RMSE obs. / obsv. | roughness RMSE obs. / "
+             "obsv. | observed texels |", "|---|---|---|---|---|---|---|"]
+    exps = []
+    with tempfile.TemporaryDirectory(dir=workdir) as d:
+        for label, field_name, values in sweeps:
+            secs, solve = [], []
+            for v in values:
+                ds = make_synthetic(replace(base, **{field_name: v}), Path(d) / f"{field_name}_{v}", overwrite=True)
+                r = reconstruction_run(ds, threads=threads)
+                secs.append(r["seconds"])
+                solve.append(r["times"].get("solve", float("nan")))
+                cells = " | ".join(f"{r['rmse_observed'].get(m, float('nan')):.4f} / "
+                                   f"{r['rmse_observable'].get(m, float('nan')):.4f}"
+                                   for m in ("albedo", "f0", "roughness"))
+                lines.append(f"| {label} | {v} | {r['seconds']:.1f} ({solve[-1]:.1f}) | {cells} | "
+                             f"{r['observed_texels']} |")
+            xs = [float(v) ** 2 if field_name == "texture_size" else float(v) for v in values]
+            per = "texels T²" if field_name == "texture_size" else "materials"
+            exps.append(f"time ∝ ({per})^k: k = {growth_exponent(xs, secs):.2f} end to end, "
+                        f"{growth_exponent(xs, solve):.2f} for the solve")
+    return lines + [""] + [f"- {label}: {e}" for (label, _, _), e in zip(sweeps, exps, strict=True)]
+
+
 def run_reconstruction_benchmark(out: str | None = None, scene: str = "default", rigs=("flash", "fixed"),
                                  threads: int | None = None, adam=((0.05, 200), (0.02, 500)),
-                                 fast_variants: bool = True, workdir: str | None = None) -> str:
+                                 fast_variants: bool = True, workdir: str | None = None, figure: str | None = None,
+                                 sweeps: bool = True) -> str:
     """Time against error of the reconstruction (markdown), written into ``out``'s
     ``reconstruction`` section when given.
 
@@ -369,7 +451,9 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     path (default options), the fast path without the joint bilinear refinement and with a
     finer grid (``fast_variants``), and Adam for each ``(lr, iterations)`` of ``adam`` (bilinear
     sampling). Each row: end-to-end seconds, per-map RMSE on observed texels and on texels where
-    the map is observable, observable fractions, and the process's peak memory so far.
+    the map is observable, observable fractions, and the process's peak memory so far. ``figure``: write
+    the Pareto plot there (:func:`plot_reconstruction_pareto`). ``sweeps`` (default scene only): the fast path
+    over texture resolution and number of materials (:func:`reconstruction_sweeps`).
     """
     import tempfile
     from pathlib import Path
@@ -413,6 +497,14 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     fit0 = rows[0]["fit"] if rows else {}
     lines.append("Solver internals of that row (s): " + ", ".join(
         f"{k} {fit0[k]:.1f}" for k in ("grid_s", "lm_s", "joint_s", "posterior_s") if k in fit0))
+    if figure and rows:
+        plot_reconstruction_pareto(rows, figure, f"Reconstruction of the {scene} scene: time against error "
+                                   f"({machine_description()})")
+        rel = Path(figure).name if out is None else "figures/" + Path(figure).name
+        lines += ["", f"![reconstruction: time against error]({rel})"]
+    if sweeps and scene == "default":
+        lines += ["", "### Sweeps (fast path, default scene with the flash rig, one axis varied)", ""]
+        lines += reconstruction_sweeps(workdir, threads)
     table = "\n".join(lines)
     if out:
         replace_section(Path(out), "reconstruction", "## Reconstruction: time against error\n\n" + table)

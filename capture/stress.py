@@ -51,6 +51,16 @@ def model_stability_table(n_random: int = 4096, out: str | None = None) -> tuple
 
 # -- reconstruction under stress ------------------------------------------------------------------
 
+#: Extreme ground truths of the "extreme true parameters" scenario: label → ``SyntheticConfig.uniform``
+#: (the named map is set everywhere; the other maps keep the six regions).
+EXTREME_TRUTH = {
+    "regions": {},
+    "mirror-like r 0.02": {"roughness": 0.02},
+    "fully rough r 1": {"roughness": 1.0},
+    "black albedo": {"albedo": 0.0},
+    "white f0": {"f0": 1.0},
+}
+
 #: (scenario, SyntheticConfig field or pseudo-field, levels, label of the level). Base: a small
 #: ggx-lambert sphere (96 px, 6 views, 32² maps). Pseudo-fields: "full_well" (shot noise; None = none),
 #: "exposure_error" (the recorded exposure is off by this factor), "overexpose" (photo exposure, clipped).
@@ -61,6 +71,7 @@ STRESS_SCENARIOS = (
     ("few views", "n_views", (8, 4, 2, 1), "views"),
     ("light swung away from the camera", "light_offset_deg", (20.0, 45.0, 70.0, 89.0), "light-camera angle (deg)"),
     ("grazing views only", "elevations", ((50.0,), (20.0,), (8.0,), (3.0,)), "camera elevation over a plane (deg)"),
+    ("extreme true parameters", "uniform", tuple(EXTREME_TRUTH), "true maps"),
 )
 
 
@@ -77,6 +88,8 @@ def _stress_config(field: str, level):
         return base, level
     if field == "overexpose":
         return replace(base, photo=PhotoModel(exposure=level, clip=True)), 1.0
+    if field == "uniform":
+        return replace(base, uniform=EXTREME_TRUTH[level]), 1.0
     if field == "elevations":
         return replace(base, mesh="plane", mesh_options={}, elevations=level, light_rig="fixed"), 1.0
     return replace(base, **{field: level}), 1.0

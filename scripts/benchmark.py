@@ -7,10 +7,11 @@
 error of each approximation the papers propose against the exact form it replaces.
 
     python scripts/benchmark.py reconstruction [--scene default|small] [--rigs flash fixed] [--threads N]
-        [--adam LR:ITERS ...] [--out docs/benchmarks.md]
+        [--adam LR:ITERS ...] [--no-sweeps] [--out docs/benchmarks.md] [--figure docs/figures/reconstruction_pareto.png]
 
 `reconstruction`: end-to-end time against map error of the fast path (and its variants) and Adam
-(capture.benchmark.run_reconstruction_benchmark).
+(capture.benchmark.run_reconstruction_benchmark), its Pareto plot (--figure), and sweeps of the fast path over texture
+resolution and number of materials.
 Results go to stdout and, with --out, into the generated sections of docs/benchmarks.md.
 """
 
@@ -31,10 +32,13 @@ if __name__ == "__main__":
     ap.add_argument("--compile", nargs="*", default=None,
                     help="models to also time under torch.compile (default: the common ones)")
     ap.add_argument("--out", default=None, help="markdown file to write results into")
+    ap.add_argument("--figure", default=None, help="reconstruction: Pareto plot PNG")
+    ap.add_argument("--no-sweeps", action="store_true", help="reconstruction: skip the texture/material sweeps")
     args = ap.parse_args()
     if args.what == "models":
         print(run_models_benchmark(n=args.n, device=args.device, compile_names=args.compile, out=args.out))
     else:
         adam = tuple((float(a.split(":")[0]), int(a.split(":")[1])) for a in args.adam)
         print(run_reconstruction_benchmark(out=args.out, scene=args.scene, rigs=tuple(args.rigs), threads=args.threads,
-                                           adam=adam, fast_variants=not args.no_variants))
+                                           adam=adam, fast_variants=not args.no_variants, figure=args.figure,
+                                           sweeps=not args.no_sweeps))
