@@ -85,7 +85,7 @@ def _model(name):
 
 
 _FAST_KEYS = ("iterations", "grid", "refine", "schedule", "smoothness", "delta", "observable_std", "noise",
-              "reproject", "sampling", "joint_iterations", "cg_iterations", "tol")
+              "reproject", "sampling", "joint_iterations", "cg_iterations", "tol", "fill_before_joint")
 _ADAM_KEYS = ("iterations", "lr", "delta", "observable_std", "noise", "sampling", "time_budget_s")
 
 

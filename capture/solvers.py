@@ -679,7 +679,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                smoothness: float = 0.0, init: Mapping[str, Tensor] | None = None, tol: float = 1e-10,
                observable_std: float | Mapping[str, float] | None = None, noise=NOISE, reproject: int = 0,
                sampling: str = "nearest", joint_iterations: int = 2, cg_iterations: int = 25,
-               progress: Callable[[str, int, float], None] | None = None) -> FitResult:
+               fill_before_joint: bool = True, progress: Callable[[str, int, float], None] | None = None) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
     Objective: ``Σ_s weight_s Σ_c ρ(y_sc − L_sc)`` with nearest-texel sampling (each sample reads
@@ -713,6 +713,12 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             read four texels per sample: the per-texel LM — with nearest sampling — initialises
             :func:`refine_joint`, ``joint_iterations`` joint LM steps with ``cg_iterations`` PCG
             iterations each).
+        fill_before_joint: before the joint refinement, replace the parameters that are unobservable in a texel
+            by pull-push fills of the observable ones (default). Measured on the default scene (2 joint
+            iterations): without the fill the RMSE on observable texels is 0.0032 / 0.0103 / 0.0395 (albedo / f0 /
+            roughness) against 0.0015 / 0.0079 / 0.0109 with it; 4 joint iterations without it: 0.0038 / 0.0259 /
+            0.0592 — the wild per-texel values of unconstrained parameters leak into the neighbours' bilinear
+            footprint.
         reproject: every this many iterations re-solve the linear parameters in closed form at the
             current nonlinear ones (a variable-projection step, 1 + #linear evaluations); 0 = never.
         progress: callback ``(stage, iteration, cost)``.
@@ -857,7 +863,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     info["lm_s"] = time.perf_counter() - t_lm
     info["accepted"] = accepted
     info["stages"] = [s[0] for s in stages]
-    if sampling == "bilinear" and joint_iterations > 0:
+    if sampling == "bilinear" and joint_iterations > 0 and fill_before_joint:
         # per-texel parameters the photos do not determine vary wildly from texel to texel; under
         # bilinear sampling they would mix into the neighbours' predictions, so they are replaced
         # by pull-push fills of the observable ones before the joint refinement
@@ -869,6 +875,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             if bool(good.any()) and not bool(good.all()):
                 filled_c = pull_push(canon[:, sl].reshape(H, W, -1), good).reshape(T, -1)
                 theta[:, sl] = from_canonical(s_, filled_c)
+    if sampling == "bilinear" and joint_iterations > 0:
         theta, jinfo = refine_joint(model, obs, layout, theta, groups, loss=loss, delta=delta,
                                     iterations=joint_iterations, cg_iterations=cg_iterations, progress=progress)
         info.update(jinfo)
