@@ -31,3 +31,29 @@ def test_replace_section_keeps_hand_written_text(tmp_path):
     assert "second" in text and "first" not in text and "other" in text
     assert text.count("<!-- begin:t -->") == 1 and text.index("begin:t") < text.index("begin:u")
     assert [p.name for p in tmp_path.iterdir()] == ["d.md"]  # no temporary files left behind
+
+
+def test_pareto_plot_writes_a_png(tmp_path):
+    from capture.benchmark import plot_reconstruction_pareto
+
+    rows = [{"rig": rig, "label": lab, "seconds": s, "rmse_observed": {"albedo": 0.1, "f0": 0.2, "roughness": 0.3},
+             "rmse_observable": {"albedo": 0.001, "f0": 0.01, "roughness": float("nan")}}
+            for rig in ("flash", "fixed") for lab, s in (("fast", 30.0), ("adam", 50.0))]
+    png = tmp_path / "p.png"
+    plot_reconstruction_pareto(rows, png)
+    import cv2
+
+    img = cv2.imread(str(png))
+    assert img is not None and img.shape[1] > 500 and img.std() > 1  # a real, non-blank figure
+
+
+def test_extreme_truth_stress_configs():
+    from capture.stress import EXTREME_TRUTH, STRESS_SCENARIOS, _stress_config
+    from capture.synthetic import build_scene
+
+    (levels,) = [lv for _, field, lv, _ in STRESS_SCENARIOS if field == "uniform"]
+    assert set(levels) == set(EXTREME_TRUTH)
+    cfg, factor = _stress_config("uniform", "white f0")
+    assert factor == 1.0 and cfg.uniform == {"f0": [1.0]}
+    maps = build_scene(cfg).maps
+    assert bool((maps["f0"] == 1.0).all()) and not bool((maps["roughness"] == maps["roughness"].flatten()[0]).all())
