@@ -481,7 +481,9 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
             for label, solver, opts in variants:
                 r = reconstruction_run(ds, solver=solver, threads=threads, **opts)
                 rows.append({"rig": rig, "highlight_coverage": cov, "label": label, **r})
-    lines = [f"Machine: {machine_description()}; scene `{scene}`.", "",
+    used = threads or torch.get_num_threads()
+    lines = [f"Machine: {machine_description().split(', torch')[0]}, torch {torch.__version__}; reconstructions ran "
+             f"with {used} torch thread(s); scene `{scene}`.", "",
              "| rig (highlight cov.) | solver | s | albedo obs. / obsv. | f0 obs. / obsv. | roughness obs. / obsv. "
              "| observable % (a/f0/r) | peak MiB |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -499,7 +501,7 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
         f"{k} {fit0[k]:.1f}" for k in ("grid_s", "lm_s", "joint_s", "posterior_s") if k in fit0))
     if figure and rows:
         plot_reconstruction_pareto(rows, figure, f"Reconstruction of the {scene} scene: time against error "
-                                   f"({machine_description()})")
+                                   f"({machine_description().split(', torch')[0]}, {used} torch thread(s))")
         rel = Path(figure).name if out is None else "figures/" + Path(figure).name
         lines += ["", f"![reconstruction: time against error]({rel})"]
     if sweeps and scene == "default":
