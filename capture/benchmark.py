@@ -21,8 +21,9 @@ from materials import Angles
 from materials.model import Model
 
 
-def machine_description(device: str = "cpu") -> str:
-    """One line naming the machine: CPU model and core count, torch version, and the GPU if used."""
+def machine_description(device: str = "cpu", threads: int | None = None) -> str:
+    """One line naming the machine: CPU model and core count, torch version, torch threads (``threads``, default
+    the current setting), and the GPU if used."""
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as fh:
@@ -32,7 +33,8 @@ def machine_description(device: str = "cpu") -> str:
                     break
     except OSError:
         pass
-    desc = f"{cpu}, {os.cpu_count()} logical cores, torch {torch.__version__}, {torch.get_num_threads()} threads"
+    n_threads = threads or torch.get_num_threads()
+    desc = f"{cpu}, {os.cpu_count()} logical cores, torch {torch.__version__}, {n_threads} threads"
     if device.startswith("cuda") and torch.cuda.is_available():
         desc += f", GPU {torch.cuda.get_device_name()}"
     return desc
@@ -482,8 +484,7 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
                 r = reconstruction_run(ds, solver=solver, threads=threads, **opts)
                 rows.append({"rig": rig, "highlight_coverage": cov, "label": label, **r})
     used = threads or torch.get_num_threads()
-    lines = [f"Machine: {machine_description().split(', torch')[0]}, torch {torch.__version__}; reconstructions ran "
-             f"with {used} torch thread(s); scene `{scene}`.", "",
+    lines = [f"Machine: {machine_description(threads=used)} (the reconstructions' setting); scene `{scene}`.", "",
              "| rig (highlight cov.) | solver | s | albedo obs. / obsv. | f0 obs. / obsv. | roughness obs. / obsv. "
              "| observable % (a/f0/r) | peak MiB |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -501,7 +502,7 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
         f"{k} {fit0[k]:.1f}" for k in ("grid_s", "lm_s", "joint_s", "posterior_s") if k in fit0))
     if figure and rows:
         plot_reconstruction_pareto(rows, figure, f"Reconstruction of the {scene} scene: time against error "
-                                   f"({machine_description().split(', torch')[0]}, {used} torch thread(s))")
+                                   f"({machine_description(threads=used)})")
         rel = Path(figure).name if out is None else "figures/" + Path(figure).name
         lines += ["", f"![reconstruction: time against error]({rel})"]
     if sweeps and scene == "default":

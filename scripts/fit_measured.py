@@ -121,8 +121,9 @@ def uniform_errors(model, params, target_uniform: torch.Tensor, uniform) -> brdf
     return brdf_fit.errors(pred.expand_as(target_uniform), target_uniform, uniform)
 
 
-def ranking_lines(results, uniform, models) -> list[str]:
-    """A second per-model summary under the uniform-hemisphere L1, and how far it reorders the first."""
+def ranking_lines(results, uniform, models, n_samples: int) -> list[str]:
+    """A second per-model summary under the uniform-hemisphere L1 (``uniform``: material → model → FitErrors on
+    ``n_samples`` uniform pairs), and how far it reorders the first."""
     mats = [m for m in results if results[m]]
     rows = []
     for m in models:
@@ -143,7 +144,7 @@ def ranking_lines(results, uniform, models) -> list[str]:
     rho = 1.0 - 6.0 * d2 / (n * (n * n - 1)) if n > 1 else 1.0
     lines = ["", "## Second ranking: uniform-hemisphere L1", "",
              f"The fits above are scored on Rusinkiewicz samples whose sqrt-spaced θ_h gives the specular core a large "
-             f"share of the weight. Here the same fitted parameters are scored on {len(uniform['_samples'])} (l, v) "
+             f"share of the weight. Here the same fitted parameters are scored on {n_samples} (l, v) "
              "pairs drawn uniformly in solid angle on both hemispheres (`make_samples(\"hemispheres\", 24)`, "
              "cosine-weighted relative L1, not re-fitted), which weights the broad base of a lobe and the diffuse "
              f"body by their share of the hemisphere. Spearman rank correlation between the two rankings of the "
@@ -156,7 +157,7 @@ def ranking_lines(results, uniform, models) -> list[str]:
     return lines
 
 
-def write_markdown(path: Path, results, models, settings, figures, seconds, uniform=None) -> None:
+def write_markdown(path: Path, results, models, settings, figures, seconds, uniform=None, n_uniform: int = 0) -> None:
     mats = list(results)
     lines = [
         "# Analytic models fitted to NBRDF fits of MERL",
@@ -196,7 +197,7 @@ def write_markdown(path: Path, results, models, settings, figures, seconds, unif
     for med, m, mean, wmed in sorted(summary):
         lines.append(f"| `{m}` | {med:.3f} | {mean:.3f} | {wmed:.3f} | {best[m]} |")
     if uniform:
-        lines += ranking_lines(results, uniform, models)
+        lines += ranking_lines(results, uniform, models, n_uniform)
     lines += ["", "## Nielsen et al.'s observation, checked on our fits", ""]
     cmp = nielsen_comparison(results)
     lines += cmp or ["(needs nielsen-phong, nielsen-blinn-phong and nielsen-mixture in the fitted models)"]
@@ -259,7 +260,7 @@ def main(argv=None) -> int:
     settings = (f"{args.procedure} procedure, {args.restarts} restarts, {len(samples)} Rusinkiewicz-stratified "
                 f"samples (resolution {args.resolution}, θ_h sqrt-spaced, φ_d ∈ [0, π]), Adam then L-BFGS, float64")
     uniform_samples = brdf_fit.make_samples("hemispheres", resolution=24, dtype=torch.float64)
-    uniform: dict[str, dict] = {"_samples": uniform_samples}
+    uniform: dict[str, dict] = {}
     t0 = time.perf_counter()
     results: dict[str, dict] = {}
     figures = []
@@ -306,9 +307,9 @@ def main(argv=None) -> int:
             figures.append((mat, rel.as_posix()))
         if args.partial:  # rewrite after every material so that an interrupted run leaves its table
             write_markdown(args.out / "measured-fits.md", results, models, settings, figures,
-                           time.perf_counter() - t0, uniform)
+                           time.perf_counter() - t0, uniform, len(uniform_samples))
     write_markdown(args.out / "measured-fits.md", results, models, settings, figures, time.perf_counter() - t0,
-                   uniform)
+                   uniform, len(uniform_samples))
     print(f"wrote {args.out / 'measured-fits.md'}")
     return 0
 
