@@ -85,7 +85,8 @@ def _model(name):
 
 
 _FAST_KEYS = ("iterations", "grid", "refine", "schedule", "smoothness", "delta", "observable_std", "noise",
-              "reproject", "sampling", "joint_iterations", "cg_iterations", "tol", "fill_before_joint")
+              "reproject", "sampling", "joint_iterations", "cg_iterations", "tol", "fill_before_joint",
+              "share", "candidates", "sharing")
 _ADAM_KEYS = ("iterations", "lr", "delta", "observable_std", "noise", "sampling", "time_budget_s")
 
 

@@ -1,0 +1,295 @@
+"""Reflectance sharing: a few candidate materials for the specular parameters, per-texel albedo.
+
+Where a texel never shows a highlight its own samples cannot tell f0 from roughness from albedo
+(docs/reconstruction.md, "Why the per-texel fit cannot reach the all-texel targets"); real objects,
+however, are made of a few materials. Following Lensch et al. 2003 (basis materials fitted to
+clustered lumitexels) and Nam et al. 2018 (a handful of specular materials with per-point diffuse
+albedo, for exactly the flash-light setting), :func:`share_materials`
+
+1. clusters the *anchor* texels — those whose shared parameters the per-texel fit determined
+   (posterior std below threshold) — into ``candidates`` materials (k-means++ seeding, kornia's
+   k-means; features are the canonical values divided by their observability thresholds);
+2. assigns every observed texel to one candidate: for each candidate the per-texel albedo is solved
+   in closed form (:func:`capture.solvers._linear_solve`) with samples weighted by the photo noise
+   model, giving a χ² cost per texel and candidate; a texel takes the best candidate at the finest
+   scale where the best beats the second best by ``evidence`` (χ² units), scales being box sums of
+   the cost over 1, 3, 9, … texels — a texel with no evidence of its own borrows its neighbours';
+3. refits each candidate's shared parameters on all samples of its texels (Levenberg–Marquardt per
+   candidate, albedo held) and repeats 2–3 ``rounds`` times.
+
+The result initialises the joint refinement, whose edge-preserving prior
+(:func:`capture.solvers.refine_joint` ``sharing=``) then lets well-observed texels depart from their
+material (smooth gradients) while the others keep it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+
+import torch
+import torch.nn.functional as F
+from kornia.contrib import KMeans
+from torch import Tensor
+
+from materials.model import Model
+
+from .observations import Observations
+
+__all__ = ["share_materials", "kmeans_pp"]
+
+
+def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, iterations: int = 50) -> Tensor:
+    """Cluster centres ``[k', D]`` (k' = min(k, number of distinct points)) of points ``x [N, D]``.
+
+    k-means++ seeding (each next seed drawn with probability ∝ squared distance to the nearest seed,
+    so separated modes get a seed even when they hold few points), then Lloyd iterations by
+    :class:`kornia.contrib.KMeans` started from those seeds.
+    """
+    if x.dim() != 2 or x.shape[0] == 0:
+        raise ValueError(f"kmeans_pp: x must be [N, D] with N ≥ 1, got {tuple(x.shape)}")
+    if k < 1:
+        raise ValueError(f"kmeans_pp: k must be ≥ 1, got {k}")
+    gen = generator if generator is not None else torch.Generator().manual_seed(0)
+    xs = x.cpu()
+    seeds = [int(torch.randint(xs.shape[0], (1,), generator=gen))]
+    d2 = (xs - xs[seeds[0]]).square().sum(-1)
+    while len(seeds) < k and float(d2.max()) > 1e-12:
+        i = int(torch.multinomial(d2 / d2.sum(), 1, generator=gen))
+        seeds.append(i)
+        d2 = torch.minimum(d2, (xs - xs[i]).square().sum(-1))
+    centres = xs[seeds].clone()
+    if len(seeds) > 1:
+        km = KMeans(len(seeds), centres, tolerance=1e-10, max_iterations=iterations)
+        km.fit(xs)
+        centres = km.cluster_centers
+    return centres.to(x)
+
+
+def _footprint(obs: Observations) -> Tensor:
+    """``[T]`` bool: texels some sample reads — its nearest texel, or with bilinear sampling any of its
+    four texels with a positive weight (those are observed too, through their neighbours' samples)."""
+    seen = torch.zeros(obs.n_texels, dtype=torch.bool, device=obs.device)
+    seen[obs.texel] = True
+    if obs.bilinear_index is not None:
+        seen[obs.bilinear_index[obs.bilinear_weight > 0]] = True
+    return seen
+
+
+def _chi2_observations(obs: Observations, noise: tuple[float, float]) -> Observations:
+    """The observations with weights divided by the photo noise variance (mean over channels), so
+    that costs are χ² values: ``σ = rel · max(|y|, floor · median y)`` as in :func:`posterior_std`."""
+    rel, floor = noise
+    y = obs.radiance.double()
+    med = float(y.abs().mean(-1).median().clamp_min(1e-12))
+    sig2 = (rel * torch.maximum(y.abs(), torch.full_like(y, floor * med))).square().mean(-1)
+    return replace(obs, weight=(obs.weight.double() / sig2).to(obs.weight.dtype))
+
+
+def _box_sum(x: Tensor, s: int) -> Tensor:
+    """Sum of ``x [K, H, W]`` over the s×s box (s odd) centred on each texel, zero outside (integral image)."""
+    K, H, W = x.shape
+    r = s // 2
+    c = F.pad(x, (r + 1, r, r + 1, r)).cumsum(-1).cumsum(-2)                     # [K, H + s, W + s]
+    return c[:, s:, s:] - c[:, :-s, s:] - c[:, s:, :-s] + c[:, :-s, :-s]
+
+
+def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float) -> tuple[Tensor, Tensor]:
+    """Per texel one candidate, decided at the finest scale where the evidence is conclusive.
+
+    The candidates a texel's own samples *admit* are those within ``evidence`` (χ²) of its best.
+    At scale s (box sizes 1, 3, 9, … texels) the costs are summed over the s×s box around the
+    texel; the texel is decided at the first scale where, among the candidates it admits, the best
+    box cost beats the second best by ``evidence`` — a texel whose own samples are inconclusive
+    borrows the evidence of its neighbourhood, but never takes a candidate its own samples reject.
+
+    Args:
+        costs: ``[K, T]`` χ² cost of each candidate in each texel.
+    Returns:
+        ``(label [T], scale [T])`` — the box size that decided each texel (0 where unobserved).
+    """
+    K, T = costs.shape
+    label = costs.argmin(0)
+    scale = torch.zeros(T, dtype=torch.long, device=costs.device)
+    if K == 1:
+        scale[observed] = 1
+        return label, scale
+    rejected = costs > costs.min(0).values + evidence                                 # [K, T]
+    grid = costs.reshape(K, H, W)
+    undecided = observed.clone()
+    s = 1
+    while bool(undecided.any()):
+        cs = (grid if s == 1 else _box_sum(grid, s)).reshape(K, T).masked_fill(rejected, math.inf)
+        best = cs.topk(2, 0, largest=False)
+        last = s >= max(H, W)
+        pick = undecided & ((best.values[1] - best.values[0] > evidence) | last)
+        label[pick] = best.indices[0][pick]
+        scale[pick] = s
+        undecided &= ~pick
+        if last:
+            break
+        s *= 3
+    return label, scale
+
+
+def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anchors: Tensor, *,
+                    candidates: int = 10, rounds: int = 2, refit_iterations: int = 5, evidence: float = 10.0,
+                    noise: tuple[float, float] = (0.01, 0.1), seed: int = 0) -> tuple[Tensor, dict]:
+    """Replace the shared parameters of every observed texel by those of one of a few materials.
+
+    Args:
+        model: the material model; obs: the observations (nearest texel of each sample is used).
+        layout: the solver's :class:`capture.solvers.Layout` of ``model``.
+        theta: ``[T, P]`` per-texel fit (θ parameterisation, float64).
+        anchors: ``[T]`` bool, texels whose shared parameters the per-texel fit determined.
+        candidates: number of candidate materials (k-means clusters of the anchors), ≥ 1.
+        rounds: assignment + refit rounds, ≥ 1.
+        refit_iterations: LM iterations per refit of the candidates' parameters.
+        evidence: χ² margin (noise model ``noise``) by which the best candidate must beat the second
+            best before a texel is decided at a scale; candidates its own samples put further than
+            this above their best are never assigned to it.
+        noise: photo noise model ``(relative std, floor fraction)`` that turns costs into χ².
+        seed: seed of the k-means++ draw.
+
+    Returns:
+        ``(theta [T, P], info)``: θ with the shared parameters of the assigned material and the
+        albedo re-solved in closed form, except at the anchors, which keep their own fit; ``info``
+        has ``materials`` (canonical values of each), ``labels`` ``[T]`` (−1 where unobserved),
+        ``decided_at`` (texel counts per box size), ``share_s`` and the shared parameter names.
+        Unchanged θ (``info["materials"] = []``) when the model has nothing to share or there are
+        no anchors.
+    """
+    from .solvers import (
+        ACC,
+        MAX_STEP,
+        _groups,
+        _jacobian,
+        _linear_solve,
+        _separable,
+        from_canonical,
+        pull_push,
+        std_threshold,
+    )
+
+    t0 = time.perf_counter()
+    if candidates < 1 or rounds < 1 or refit_iterations < 0 or not (evidence >= 0 and math.isfinite(evidence)):
+        raise ValueError(f"share_materials: need candidates ≥ 1, rounds ≥ 1, refit_iterations ≥ 0 and a finite "
+                         f"evidence ≥ 0, got {candidates}, {rounds}, {refit_iterations}, {evidence}")
+    T, P = theta.shape
+    H, W = obs.map_size
+    dev = theta.device
+    per_texel = [s for s in layout.specs if s.name == "albedo" and s.linear]
+    shared = [s for s in layout.specs if s not in per_texel]
+    info = {"materials": [], "shared": [s.name for s in shared], "share_s": 0.0}
+    observed = _footprint(obs)
+    anchors = anchors & observed
+    if not shared or not per_texel or not bool(anchors.any()):
+        info["labels"] = torch.full((T,), -1, dtype=torch.long, device=dev)
+        return theta, info
+    scols = [c for s in shared for c in layout.cols(s.name)]
+    thr = torch.tensor([std_threshold(s) for s in shared for _ in range(s.channels)], dtype=ACC, device=dev)
+    theta_in = theta
+    canon = torch.cat([layout.unpack(theta)[s.name] for s in layout.specs], -1)
+    feats = canon[anchors][:, scols] / thr
+    gen = torch.Generator().manual_seed(seed)
+    centres = kmeans_pp(feats, candidates, gen) * thr                                  # canonical [K, Ps]
+    K = centres.shape[0]
+    mat = theta[:K].clone()
+    off = 0
+    for s in shared:
+        mat[:, layout.cols(s.name)] = _from_canon(s, centres[:, off:off + s.channels])
+        off += s.channels
+    chi = _chi2_observations(obs, noise)
+    sep = {s.name: s.channels == 3 and _separable(model, s, obs.dtype) for s in per_texel}
+    groups = [(c, d) for c, d in _groups(model, layout, obs.dtype) if all(x in scols for x in c)]
+    y, w = chi.radiance.to(ACC), chi.weight.to(ACC)
+    label = torch.zeros(T, dtype=torch.long, device=dev)
+    decided = {}
+    with torch.no_grad():
+        for _ in range(rounds):
+            costs, albedo = [], []
+            for k in range(K):
+                th = theta.clone()
+                th[:, scols] = mat[k, scols]
+                cand, cost = _linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
+                costs.append(cost)
+                albedo.append(cand)
+            cands = torch.stack(albedo)                                               # [K, T, P]
+            label, scale = _assign(torch.stack(costs), observed, H, W, evidence)
+            theta = cands[label, torch.arange(T, device=dev)]
+            del albedo
+            decided = {int(x): int((scale == x).sum()) for x in scale[observed].unique()}
+            mat = _refit(model, layout, chi, theta, mat, label, scols, groups, y, w, refit_iterations,
+                         _jacobian, ACC, MAX_STEP)
+        th = theta.clone()
+        th[:, scols] = mat[label][:, scols]
+        th, _ = _linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
+        # anchors keep their own fit: their samples determined it, and a material's smooth variation
+        # (a roughness gradient) lives there
+        theta = torch.where(anchors[:, None], theta_in, th)
+        # texels read only through a neighbour's bilinear footprint have no closed-form albedo of their own
+        own = torch.zeros(T, dtype=torch.bool, device=dev)
+        own[obs.texel] = True
+        borrowed = observed & ~own
+        if bool(borrowed.any()) and bool(own.any()):
+            for s in per_texel:
+                cols = layout.cols(s.name)
+                vals = layout.unpack(theta)[s.name].reshape(H, W, -1)
+                filled = pull_push(vals, own.reshape(H, W)).reshape(T, -1)
+                rows = borrowed.nonzero()[:, 0]
+                theta[rows[:, None], torch.tensor(cols, device=dev)] = from_canonical(s, filled[rows])
+    lab = torch.where(observed, label, torch.full_like(label, -1))
+    mats = layout.unpack(mat)
+    info.update(materials=[{s.name: mats[s.name][k].tolist() for s in shared} for k in range(K)], labels=lab,
+                decided_at=decided, texels_per_material=torch.bincount(label[observed], minlength=K).tolist(),
+                share_s=time.perf_counter() - t0)
+    return theta, info
+
+
+def _from_canon(spec, x: Tensor) -> Tensor:
+    from .solvers import from_canonical
+    return from_canonical(spec, x.clamp(spec.low + 1e-6 * min(spec.high - spec.low, 1.0),
+                                        spec.high - 1e-6 * min(spec.high - spec.low, 1.0)))
+
+
+def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iterations, jacobian, ACC, max_step):
+    """Levenberg–Marquardt on each material's shared parameters over the samples of its texels
+    (per-texel albedo in ``theta`` held), one damping factor and acceptance per material."""
+    K = mat.shape[0]
+    lab_s = label[obs.texel]
+    Ps = len(scols)
+
+    def per_sample(m):
+        ph = theta[obs.texel].clone()
+        ph[:, scols] = m[lab_s][:, scols]
+        return ph
+
+    def cost_of(m):
+        pred = obs.predict(model, layout.unpack(per_sample(m).to(obs.dtype))).to(ACC)
+        return torch.zeros(K, dtype=ACC, device=y.device).index_add(0, lab_s, ((y - pred) ** 2).sum(-1) * w)
+
+    cur = cost_of(mat)
+    lam = torch.full((K,), 1e-3, dtype=ACC, device=y.device)
+    for _ in range(iterations):
+        pred, J = jacobian(model, layout, obs, per_sample(mat), groups)
+        r = y - pred
+        Js = J[:, :, scols]
+        A = torch.zeros(K, Ps, Ps, dtype=ACC, device=y.device).index_add(
+            0, lab_s, torch.einsum("scp,s,scq->spq", Js, w, Js))
+        g = torch.zeros(K, Ps, dtype=ACC, device=y.device).index_add(0, lab_s, torch.einsum("scp,s,sc->sp", Js, w, r))
+        d = torch.diagonal(A, dim1=-2, dim2=-1)
+        for _attempt in range(4):
+            M = A + lam[:, None, None] * torch.diag_embed(d + 1e-12 * d.mean(-1, keepdim=True).clamp_min(1e-30))
+            step = torch.nan_to_num(torch.linalg.solve_ex(M, g)[0])
+            step = step * (max_step / step.abs().amax(-1, keepdim=True).clamp_min(max_step))
+            trial = mat.clone()
+            trial[:, scols] = trial[:, scols] + step
+            new = cost_of(trial)
+            acc = new < cur
+            mat = torch.where(acc[:, None], trial, mat)
+            cur = torch.where(acc, new, cur)
+            lam = torch.where(acc, (lam / 3).clamp_min(1e-12), (lam * 4).clamp_max(1e12))
+            if bool(acc.all()):
+                break
+    return mat

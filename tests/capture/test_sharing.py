@@ -1,0 +1,164 @@
+"""Reflectance sharing (capture/sharing.py) and the edge-preserving prior of the joint refinement."""
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+import materials
+from capture.observations import synthetic_observations
+from capture.sharing import _assign, _box_sum, kmeans_pp, share_materials
+from capture.solvers import Layout, SolverError, _SharingPrior, robust_rho, solve_fast
+
+
+def _ggx_lambert():
+    return materials.SumModel(materials.get("lambert"), materials.get("microfacet"))
+
+
+def test_box_sum_matches_a_direct_sum():
+    x = torch.rand(2, 7, 9, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    for s in (1, 3, 5):
+        ref = F.avg_pool2d(x[:, None], s, 1, s // 2, count_include_pad=True)[:, 0] * s * s
+        torch.testing.assert_close(_box_sum(x, s), ref, rtol=0, atol=1e-12)
+    # a box larger than the map sums everything
+    torch.testing.assert_close(_box_sum(x, 27), x.sum((-1, -2))[:, None, None].expand_as(x), rtol=0, atol=1e-12)
+
+
+def test_kmeans_pp_finds_a_small_separated_mode():
+    g = torch.Generator().manual_seed(3)
+    big = torch.randn(1000, 2, generator=g, dtype=torch.float64) * 0.1
+    mid = torch.randn(300, 2, generator=g, dtype=torch.float64) * 0.1 + torch.tensor([5.0, 0.0], dtype=torch.float64)
+    small = torch.randn(5, 2, generator=g, dtype=torch.float64) * 0.1 + torch.tensor([0.0, 8.0], dtype=torch.float64)
+    c = kmeans_pp(torch.cat([big, mid, small]), 3, torch.Generator().manual_seed(0))
+    want = torch.tensor([[0.0, 0.0], [5.0, 0.0], [0.0, 8.0]], dtype=torch.float64)
+    d = torch.cdist(want, c).amin(1)
+    assert bool((d < 0.15).all()), c
+    with pytest.raises(ValueError, match="k must be"):
+        kmeans_pp(big, 0)
+
+
+def test_assign_lets_inconclusive_texels_borrow_but_never_take_a_rejected_candidate():
+    # 1×9 strip, 3 candidates. Texels 0-1 clearly prefer 0; texels 2-6 cannot tell 0 from 1 but reject 2;
+    # texel 7 clearly prefers 1; texel 8 prefers 2 by less than the evidence margin over 1.
+    inf = 1e6
+    c = torch.tensor([
+        [0, 0, 0, 0, 0, 0, 0, 50, inf],
+        [50, 50, 0, 0, 0, 0, 0, 0, 0],
+        [inf, inf, 40, 40, 40, 40, 40, 50, 0],
+    ], dtype=torch.float64)
+    observed = torch.ones(9, dtype=torch.bool)
+    label, scale = _assign(c, observed, 1, 9, evidence=10.0)
+    assert label[:2].tolist() == [0, 0] and int(scale[0]) == 1
+    assert int(label[7]) == 1 and int(scale[7]) == 1
+    assert int(label[8]) in (1, 2)
+    # the inconclusive middle borrows: never candidate 2 (its own samples reject it)
+    assert bool((label[2:7] != 2).all())
+    # texel 2 sits next to the 0-texels: a 3-box already holds their evidence for 0
+    assert int(label[2]) == 0 and int(scale[2]) == 3
+    # unobserved texels are left undecided (scale 0)
+    obs2 = observed.clone()
+    obs2[4] = False
+    _, scale2 = _assign(c, obs2, 1, 9, evidence=10.0)
+    assert int(scale2[4]) == 0
+
+
+def _two_material_scene(seed=0):
+    """16×16 texels, two specular materials in halves; per-texel albedo noise. Texels in the left
+    columns see highlights (mirror-near samples), the others only off-peak directions."""
+    H = W = 16
+    g = torch.Generator().manual_seed(seed)
+    albedo = torch.rand(H, W, 3, generator=g, dtype=torch.float64) * 0.5 + 0.2
+    f0 = torch.empty(H, W, 3, dtype=torch.float64)
+    rough = torch.empty(H, W, 1, dtype=torch.float64)
+    f0[:, :8] = torch.tensor([0.9, 0.6, 0.3], dtype=torch.float64)
+    rough[:, :8] = 0.3
+    f0[:, 8:] = 0.04
+    rough[:, 8:] = 0.5
+    albedo[:, :8] = 0.0
+    return {"albedo": albedo, "f0": f0, "roughness": rough}
+
+
+def test_share_materials_recovers_unobservable_texels_from_their_material():
+    model = _ggx_lambert()
+    gt = _two_material_scene()
+    # every texel: 12 samples, a third of them near the mirror direction → all observable; then drop
+    # the highlight samples of most texels so that only anchors remain determined
+    obs = synthetic_observations(model, gt, samples_per_texel=12, highlight_fraction=0.34, seed=1)
+    layout = Layout.of(model)
+    fit = solve_fast(model, obs, share=False)
+    anchors = (~fit.unobservable["f0"] & ~fit.unobservable["roughness"]).reshape(-1)
+    assert int(anchors.sum()) >= 100
+    theta = layout.pack({k: v.reshape(-1, v.shape[-1]).double() for k, v in fit.raw.items()})
+    # spoil the non-anchor texels' specular parameters (as an inconclusive per-texel fit would)
+    bad = ~anchors
+    bad[torch.arange(bad.numel()) % 3 != 0] = False          # a third of the texels
+    spoiled = layout.unpack(theta)
+    spoiled["f0"][bad] = 0.5
+    spoiled["roughness"][bad] = 0.8
+    anchors_cut = anchors & ~bad
+    theta_s = layout.pack(spoiled)
+    out, info = share_materials(model, obs, layout, theta_s, anchors_cut, candidates=4)
+    rec = layout.unpack(out)
+    # measured: every spoiled texel is put back on its material — f0 and roughness to < 1e-3
+    for k in ("f0", "roughness"):
+        err = (rec[k][bad] - gt[k].reshape(-1, gt[k].shape[-1])[bad]).abs().max()
+        assert float(err) < 1e-3, (k, float(err))
+    assert 2 <= len(info["materials"]) <= 4
+    assert sum(info["texels_per_material"]) == 256
+
+
+def test_share_materials_leaves_models_without_shared_parameters_alone():
+    model = materials.get("lambert")
+    gt = {"albedo": torch.full((4, 4, 3), 0.5, dtype=torch.float64)}
+    obs = synthetic_observations(model, gt, samples_per_texel=4)
+    layout = Layout.of(model)
+    theta = layout.pack({"albedo": gt["albedo"].reshape(-1, 3)})
+    out, info = share_materials(model, obs, layout, theta, torch.ones(16, dtype=torch.bool))
+    assert info["materials"] == [] and torch.equal(out, theta)
+
+
+def test_sharing_prior_gradient_and_matvec_match_its_energy():
+    # float64: the prior's descent direction is −½∇E (the data term's convention JᵀWr) and its
+    # Gauss-Newton product is ½∇²E·v where every difference is inside the quadratic part
+    model = _ggx_lambert()
+    layout = Layout.of(model)
+    H = W = 5
+    T = H * W
+    observed = torch.ones(T, dtype=torch.bool)
+    observed[7] = False
+    prior = _SharingPrior(layout, ["f0", "roughness"], H, W, observed, delta=1.0)
+    prior.mu = 0.7
+    g = torch.Generator().manual_seed(0)
+    canon = torch.rand(T, layout.P, generator=g, dtype=torch.float64) * 0.01 + 0.3
+    canon[3, layout.cols("roughness")] += 0.5                  # one large jump: the Huber (linear) branch
+    dp = torch.ones(T, layout.P, dtype=torch.float64)
+    grad, diag = prior.linearise(canon, dp)
+    x = canon.clone().requires_grad_(True)
+    E = prior.mu * robust_rho(prior._diff(x), "huber", prior.delta).sum()
+    (gE,) = torch.autograd.grad(E, x)
+    torch.testing.assert_close(grad, -0.5 * gE, rtol=1e-10, atol=1e-12)
+    assert float(grad[:, layout.cols("albedo")].abs().max()) == 0.0       # albedo is not shared
+    assert float(grad[7].abs().max()) == 0.0                              # unobserved texel: no edges
+    # Hessian-vector product on a small perturbation, quadratic part only (texel 3 excluded)
+    v = torch.randn(T, layout.P, generator=g, dtype=torch.float64)
+    v[3] = 0
+    mv = prior.matvec(v, dp)
+    x2 = canon.clone().requires_grad_(True)
+    E2 = (prior.mu * prior._diff(x2).square()).sum()                       # ω = μ inside the quadratic part
+    (g2,) = torch.autograd.grad(E2, x2, create_graph=True)
+    (hv,) = torch.autograd.grad((g2 * v).sum(), x2)
+    near3 = (prior.a == 3) | (prior.b == 3)
+    keep = torch.ones(T, dtype=torch.bool)
+    keep[prior.a[near3]] = False
+    keep[prior.b[near3]] = False
+    torch.testing.assert_close(mv[keep], 0.5 * hv[keep], rtol=1e-10, atol=1e-12)
+    assert bool((diag[:, layout.cols("f0")][observed] > 0).all())
+
+
+def test_share_option_validation():
+    model = _ggx_lambert()
+    gt = _two_material_scene()
+    obs = synthetic_observations(model, gt, samples_per_texel=2)
+    with pytest.raises(SolverError, match="candidates"):
+        solve_fast(model, obs, candidates=0)
+    with pytest.raises(SolverError, match="sharing"):
+        solve_fast(model, obs, sharing=-1.0)
