@@ -95,17 +95,26 @@ def _box_sum(x: Tensor, s: int) -> Tensor:
     return c[:, s:, s:] - c[:, :-s, s:] - c[:, s:, :-s] + c[:, :-s, :-s]
 
 
-def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float) -> tuple[Tensor, Tensor]:
+def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, cap: float | None = None,
+            residuals: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Per texel one candidate, decided at the finest scale where the evidence is conclusive.
 
-    The candidates a texel's own samples *admit* are those within ``evidence`` (χ²) of its best.
-    At scale s (box sizes 1, 3, 9, … texels) the costs are summed over the s×s box around the
-    texel; the texel is decided at the first scale where, among the candidates it admits, the best
-    box cost beats the second best by ``evidence`` — a texel whose own samples are inconclusive
-    borrows the evidence of its neighbourhood, but never takes a candidate its own samples reject.
+    A texel's *excess* cost of a candidate is its χ² above the texel's best; the candidates it
+    *admits* are those with an excess within ``evidence``. At scale s (box sizes 1, 3, 9, … texels)
+    the excesses, each capped at ``cap``, are summed over the s×s box around the texel; the texel is
+    decided at the first scale where, among the candidates it admits, the best box sum beats the
+    second best by ``evidence``. So a texel whose own samples are inconclusive borrows the evidence
+    of its neighbourhood but never takes a candidate its own samples reject, and thanks to the cap
+    the neighbourhood decides by how many texels reject a candidate, not by the one texel with the
+    strongest highlight (without the cap a metal's highlights reached into the next material's
+    stripe: default scene f0 RMSE after sharing 0.158 → 0.078 with cap 15 and ``residuals``).
 
     Args:
         costs: ``[K, T]`` χ² cost of each candidate in each texel.
+        cap: largest excess one texel contributes to a box (None = no cap).
+        residuals: ``[T]`` number of residuals per texel; when given, a texel that its best candidate
+            explains worse than the noise model (χ²/residuals = s² > 1: bilinear mixing at an edge, a
+            material no candidate matches) has its excesses divided by s².
     Returns:
         ``(label [T], scale [T])`` — the box size that decided each texel (0 where unobserved).
     """
@@ -115,8 +124,14 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float) ->
     if K == 1:
         scale[observed] = 1
         return label, scale
-    rejected = costs > costs.min(0).values + evidence                                 # [K, T]
-    grid = costs.reshape(K, H, W)
+    excess = costs - costs.min(0).values
+    if residuals is not None:
+        # a texel its best candidate explains worse than the noise model (bilinear mixing at an edge,
+        # a material no candidate matches) has its χ² differences deflated by that misfit (s² ≥ 1)
+        s2 = (costs.min(0).values / residuals.clamp_min(1)).clamp_min(1.0)
+        excess = excess / s2
+    rejected = excess > evidence                                                      # [K, T]
+    grid = (excess if cap is None else excess.clamp_max(cap)).reshape(K, H, W)
     undecided = observed.clone()
     s = 1
     while bool(undecided.any()):
@@ -135,7 +150,8 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float) ->
 
 def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anchors: Tensor, *,
                     candidates: int = 10, rounds: int = 2, refit_iterations: int = 5, evidence: float = 10.0,
-                    noise: tuple[float, float] = (0.01, 0.1), seed: int = 0) -> tuple[Tensor, dict]:
+                    cap: float | None = 15.0, misfit: bool = True, noise: tuple[float, float] = (0.01, 0.1),
+                    seed: int = 0) -> tuple[Tensor, dict]:
     """Replace the shared parameters of every observed texel by those of one of a few materials.
 
     Args:
@@ -146,6 +162,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         candidates: number of candidate materials (k-means clusters of the anchors), ≥ 1.
         rounds: assignment + refit rounds, ≥ 1.
         refit_iterations: LM iterations per refit of the candidates' parameters.
+        cap, misfit: the per-texel cap on a box's evidence and the misfit deflation of :func:`_assign`.
         evidence: χ² margin (noise model ``noise``) by which the best candidate must beat the second
             best before a texel is decided at a scale; candidates its own samples put further than
             this above their best are never assigned to it.
@@ -205,6 +222,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     groups = [(c, d) for c, d in _groups(model, layout, obs.dtype) if all(x in scols for x in c)]
     y, w = chi.radiance.to(ACC), chi.weight.to(ACC)
     label = torch.zeros(T, dtype=torch.long, device=dev)
+    residuals = 3.0 * torch.bincount(obs.texel, minlength=T).to(ACC)
     decided = {}
     with torch.no_grad():
         for _ in range(rounds):
@@ -216,7 +234,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                 costs.append(cost)
                 albedo.append(cand)
             cands = torch.stack(albedo)                                               # [K, T, P]
-            label, scale = _assign(torch.stack(costs), observed, H, W, evidence)
+            label, scale = _assign(torch.stack(costs), observed, H, W, evidence, cap, residuals if misfit else None)
             theta = cands[label, torch.arange(T, device=dev)]
             del albedo
             decided = {int(x): int((scale == x).sum()) for x in scale[observed].unique()}
