@@ -96,7 +96,7 @@ def _box_sum(x: Tensor, s: int) -> Tensor:
 
 
 def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, cap: float | None = None,
-            residuals: Tensor | None = None) -> tuple[Tensor, Tensor]:
+            residuals: Tensor | None = None, prior: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Per texel one candidate, decided at the finest scale where the evidence is conclusive.
 
     A texel's *excess* cost of a candidate is its χ² above the texel's best; the candidates it
@@ -115,6 +115,7 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, ca
         residuals: ``[T]`` number of residuals per texel; when given, a texel that its best candidate
             explains worse than the noise model (χ²/residuals = s² > 1: bilinear mixing at an edge, a
             material no candidate matches) has its excesses divided by s².
+        prior: ``[K, T]`` extra cost added to the (deflated) excesses, e.g. :func:`_albedo_prior`.
     Returns:
         ``(label [T], scale [T])`` — the box size that decided each texel (0 where unobserved).
     """
@@ -130,6 +131,9 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, ca
         # a material no candidate matches) has its χ² differences deflated by that misfit (s² ≥ 1)
         s2 = (costs.min(0).values / residuals.clamp_min(1)).clamp_min(1.0)
         excess = excess / s2
+    if prior is not None:
+        excess = excess + prior
+        excess = excess - excess.min(0).values
     rejected = excess > evidence                                                      # [K, T]
     grid = (excess if cap is None else excess.clamp_max(cap)).reshape(K, H, W)
     undecided = observed.clone()
@@ -148,10 +152,33 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, ca
     return label, scale
 
 
+def _albedo_prior(albedo: Tensor, anchors: Tensor, anchor_label: Tensor, own: Tensor,
+                  floor: float = 0.02, min_anchors: int = 3) -> Tensor:
+    """``[K, T]`` χ²-like cost of each texel's albedo under each candidate against that material's albedo.
+
+    A material is a specular lobe *and* a distribution of albedo: mean μ_k and per-channel variance
+    σ_k² over the anchors labelled k (their albedo is determined), floored at ``floor``². A texel's cost
+    for candidate k is ``Σ_c (a_tc^(k) − μ_kc)² / (σ_kc² + floor²)`` with a^(k) its closed-form albedo
+    under k — a metal (albedo ≈ 0 on all its anchors) rejects a blue texel that its few samples could
+    not tell from the metal's lobe, a textured material (large σ) rejects little. 0 for materials
+    with fewer than ``min_anchors`` anchors and for texels without samples of their own.
+    """
+    K, T, C = albedo.shape
+    idx = anchors.nonzero()[:, 0]
+    a = albedo[anchor_label, idx]                                                    # [A, C]
+    cnt = torch.bincount(anchor_label, minlength=K).to(albedo.dtype)
+    mean = torch.zeros(K, C, dtype=albedo.dtype, device=albedo.device).index_add(0, anchor_label, a)
+    mean = mean / cnt.clamp_min(1)[:, None]
+    var = torch.zeros(K, C, dtype=albedo.dtype, device=albedo.device).index_add(
+        0, anchor_label, (a - mean[anchor_label]).square()) / cnt.clamp_min(1)[:, None]
+    cost = ((albedo - mean[:, None]).square() / (var + floor ** 2)[:, None]).sum(-1)   # [K, T]
+    return torch.where((cnt >= min_anchors)[:, None] & own[None], cost, torch.zeros_like(cost))
+
+
 def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anchors: Tensor, *,
                     candidates: int = 10, rounds: int = 2, refit_iterations: int = 5, evidence: float = 10.0,
-                    cap: float | None = 15.0, misfit: bool = True, noise: tuple[float, float] = (0.01, 0.1),
-                    seed: int = 0) -> tuple[Tensor, dict]:
+                    cap: float | None = 15.0, misfit: bool = True, albedo_prior: float = 1.0, prior_cap: float = 15.0,
+                    noise: tuple[float, float] = (0.01, 0.1), seed: int = 0) -> tuple[Tensor, dict]:
     """Replace the shared parameters of every observed texel by those of one of a few materials.
 
     Args:
@@ -223,6 +250,9 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     y, w = chi.radiance.to(ACC), chi.weight.to(ACC)
     label = torch.zeros(T, dtype=torch.long, device=dev)
     residuals = 3.0 * torch.bincount(obs.texel, minlength=T).to(ACC)
+    own = residuals > 0
+    kmeans_label = torch.cdist(feats, centres / thr).argmin(1)
+    first = True
     decided = {}
     with torch.no_grad():
         for _ in range(rounds):
@@ -234,7 +264,14 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                 costs.append(cost)
                 albedo.append(cand)
             cands = torch.stack(albedo)                                               # [K, T, P]
-            label, scale = _assign(torch.stack(costs), observed, H, W, evidence, cap, residuals if misfit else None)
+            prior = None
+            if albedo_prior > 0:
+                a_lab = kmeans_label
+                prior = (albedo_prior * _albedo_prior(layout.unpack(cands)[per_texel[0].name], anchors, a_lab, own)
+                         ).clamp_max(prior_cap)
+            first = False
+            label, scale = _assign(torch.stack(costs), observed, H, W, evidence, cap, residuals if misfit else None,
+                                   prior)
             theta = cands[label, torch.arange(T, device=dev)]
             del albedo
             decided = {int(x): int((scale == x).sum()) for x in scale[observed].unique()}
@@ -247,8 +284,6 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         # (a roughness gradient) lives there
         theta = torch.where(anchors[:, None], theta_in, th)
         # texels read only through a neighbour's bilinear footprint have no closed-form albedo of their own
-        own = torch.zeros(T, dtype=torch.bool, device=dev)
-        own[obs.texel] = True
         borrowed = observed & ~own
         if bool(borrowed.any()) and bool(own.any()):
             for s in per_texel:
