@@ -252,6 +252,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     residuals = 3.0 * torch.bincount(obs.texel, minlength=T).to(ACC)
     own = residuals > 0
     kmeans_label = torch.cdist(feats, centres / thr).argmin(1)
+    scale = torch.zeros(T, dtype=torch.long, device=dev)
     first = True
     decided = {}
     with torch.no_grad():
@@ -266,8 +267,16 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
             cands = torch.stack(albedo)                                               # [K, T, P]
             prior = None
             if albedo_prior > 0:
-                a_lab = kmeans_label
-                prior = (albedo_prior * _albedo_prior(layout.unpack(cands)[per_texel[0].name], anchors, a_lab, own)
+                # the albedo statistics come from the anchors (labelled by k-means) and, after the first
+                # round, the texels their own samples decided; not from texels labelled by their neighbours,
+                # whose errors would widen a material's albedo range round after round
+                if first:
+                    stat_set, a_lab = anchors, kmeans_label
+                else:
+                    stat_set = anchors | (own & (scale == 1))
+                    a_lab = label[stat_set]
+                    a_lab[anchors[stat_set]] = kmeans_label
+                prior = (albedo_prior * _albedo_prior(layout.unpack(cands)[per_texel[0].name], stat_set, a_lab, own)
                          ).clamp_max(prior_cap)
             first = False
             label, scale = _assign(torch.stack(costs), observed, H, W, evidence, cap, residuals if misfit else None,
