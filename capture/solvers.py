@@ -979,7 +979,7 @@ class _SharingPrior:
 
 def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor, groups, *, loss: str, delta: float,
                  iterations: int = 4, cg_iterations: int = 25, sampling: str = "bilinear",
-                 sharing: float = 0.0, sharing_params: Sequence[str] | None = None, sharing_delta: float = 1.0,
+                 sharing: float = 0.0, sharing_params: Sequence[str] | None = None, sharing_delta: float = 0.3,
                  progress: Callable[[str, int, float], None] | None = None) -> tuple[Tensor, dict]:
     """Levenberg-Marquardt over *all* texels at once with the true (bilinear) sampling footprint.
 
@@ -992,6 +992,17 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     per-texel P×P block). A step is kept when it lowers the total cost, else λ grows ×4 and the
     step is re-solved. Variables are θ (the sigmoid/softplus parameterisation), with the same
     trust region |Δθ| ≤ :data:`MAX_STEP` per texel as :func:`solve_fast`.
+
+    ``sharing > 0`` adds the edge-preserving prior of :class:`_SharingPrior` between 4-neighbour
+    observed texels on ``sharing_params`` (default: every parameter but the albedo): Huber on the
+    differences in units of the observability thresholds, quadratic below ``sharing_delta``, with
+    weight μ = ``sharing`` × the median data curvature of a one-threshold change (so ``sharing`` is
+    dimensionless). It enters the normal equations through IRLS weights, the matrix-free product and
+    the preconditioner's diagonal, and the step acceptance compares data + prior. Measured on the
+    default scene after :func:`capture.sharing.share_materials` (2 outer iterations): RMSE on all
+    observed texels albedo / f0 / roughness 0.026 / 0.031 / 0.079 without the prior, 0.017 / 0.024 /
+    0.058 with μ = 1, δ = 1, 0.017 / 0.021 / 0.056 with δ = 0.3 (the default); μ = 0.3 or 3 change
+    them by < 0.003.
 
     Returns:
         ``(theta [T, P], info)`` with the cost history, accepted steps and time.
