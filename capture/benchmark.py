@@ -450,8 +450,8 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     ``scene="default"``: :func:`capture.synthetic.default_scene` (16 views of 256², 256² maps,
     GGX + Lambert, 2 point lights, bilinear, noise-free), once per light rig in ``rigs``;
     ``scene="small"``: :func:`capture.synthetic.small_scene` (96 px, 6 views, 32² maps). Rows: the fast
-    path (default options), the fast path without the joint bilinear refinement and with a
-    finer grid (``fast_variants``), and Adam for each ``(lr, iterations)`` of ``adam`` (bilinear
+    path (default options), the fast path without reflectance sharing, without the joint bilinear
+    refinement and with a coarse grid (``fast_variants``), and Adam for each ``(lr, iterations)`` of ``adam`` (bilinear
     sampling). Each row: end-to-end seconds, per-map RMSE on observed texels and on texels where
     the map is observable, observable fractions, and the process's peak memory so far. ``figure``: write
     the Pareto plot there (:func:`plot_reconstruction_pareto`). ``sweeps`` (default scene only): the fast path
@@ -477,7 +477,8 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
             cov = load_dataset(ds).meta.get("highlight_coverage", {}).get("coverage")
             variants = [("fast", "fast", {})]
             if fast_variants:
-                variants += [("fast, no joint refinement", "fast", {"joint_iterations": 0}),
+                variants += [("fast, no reflectance sharing", "fast", {"share": False}),
+                             ("fast, no joint refinement (nor sharing)", "fast", {"joint_iterations": 0}),
                              ("fast, coarse grid 8 + 6 refinements", "fast", {"grid": 8, "refine": 6})]
             variants += [(f"adam lr {lr} × {it}", "adam", {"lr": lr, "iterations": it}) for lr, it in adam]
             for label, solver, opts in variants:
@@ -499,7 +500,7 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
         f"{k} {v:.1f}" for k, v in rows[0]["times"].items()) if rows else ""]
     fit0 = rows[0]["fit"] if rows else {}
     lines.append("Solver internals of that row (s): " + ", ".join(
-        f"{k} {fit0[k]:.1f}" for k in ("grid_s", "lm_s", "joint_s", "posterior_s") if k in fit0))
+        f"{k} {fit0[k]:.1f}" for k in ("grid_s", "lm_s", "share_s", "joint_s", "posterior_s") if k in fit0))
     if figure and rows:
         plot_reconstruction_pareto(rows, figure, f"Reconstruction of the {scene} scene: time against error "
                                    f"({machine_description(threads=used)})")
