@@ -9,13 +9,21 @@ albedo, for exactly the flash-light setting), :func:`share_materials`
 1. clusters the *anchor* texels — those whose shared parameters the per-texel fit determined
    (posterior std below threshold) — into ``candidates`` materials (k-means++ seeding, kornia's
    k-means; features are the canonical values divided by their observability thresholds);
-2. assigns every observed texel to one candidate: for each candidate the per-texel albedo is solved
-   in closed form (:func:`capture.solvers._linear_solve`) with samples weighted by the photo noise
-   model, giving a χ² cost per texel and candidate; a texel takes the best candidate at the finest
-   scale where the best beats the second best by ``evidence`` (χ² units), scales being box sums of
-   the cost over 1, 3, 9, … texels — a texel with no evidence of its own borrows its neighbours';
+2. assigns every observed texel to one candidate (:func:`_assign`): for each candidate the
+   per-texel albedo is solved in closed form (:func:`capture.solvers._linear_solve`) with samples
+   weighted by the photo noise model, giving a χ² cost per texel and candidate; a texel takes the
+   best candidate at the finest scale where it beats the second best by ``evidence`` (χ² units),
+   scales being box sums over 1, 3, 9, … texels of each texel's excess χ² capped at ``cap`` — a
+   texel with no evidence of its own borrows its neighbours', counted texel by texel. Each
+   material also carries an albedo distribution (:func:`_albedo_prior`), so that a texel whose
+   photos cannot tell a metal's lobe from a dielectric's is not given the metal when its albedo is
+   blue;
 3. refits each candidate's shared parameters on all samples of its texels (Levenberg–Marquardt per
    candidate, albedo held) and repeats 2–3 ``rounds`` times.
+
+Anchors keep their own fit. Measured on the default scene (docs/reconstruction.md, "Reflectance
+sharing"): RMSE on all observed texels albedo / f0 / roughness 0.135 / 0.210 / 0.178 → 0.017 / 0.021 /
+0.056 after the joint refinement, 6 s.
 
 The result initialises the joint refinement, whose edge-preserving prior
 (:func:`capture.solvers.refine_joint` ``sharing=``) then lets well-observed texels depart from their
@@ -95,6 +103,17 @@ def _box_sum(x: Tensor, s: int) -> Tensor:
     return c[:, s:, s:] - c[:, :-s, s:] - c[:, s:, :-s] + c[:, :-s, :-s]
 
 
+def _excess(costs: Tensor, residuals: Tensor | None) -> Tensor:
+    """``[K, T]`` χ² of each candidate above the texel's best; with ``residuals`` (``[T]``) a texel that
+    its best candidate explains worse than the noise model (bilinear mixing at an edge, a material no
+    candidate matches) has its differences deflated by that misfit s² = max(1, χ²_best / residuals)."""
+    best = costs.min(0).values
+    excess = costs - best
+    if residuals is not None:
+        excess = excess / (best / residuals.clamp_min(1)).clamp_min(1.0)
+    return excess
+
+
 def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, cap: float | None = None,
             residuals: Tensor | None = None, prior: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Per texel one candidate, decided at the finest scale where the evidence is conclusive.
@@ -125,12 +144,7 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, ca
     if K == 1:
         scale[observed] = 1
         return label, scale
-    excess = costs - costs.min(0).values
-    if residuals is not None:
-        # a texel its best candidate explains worse than the noise model (bilinear mixing at an edge,
-        # a material no candidate matches) has its χ² differences deflated by that misfit (s² ≥ 1)
-        s2 = (costs.min(0).values / residuals.clamp_min(1)).clamp_min(1.0)
-        excess = excess / s2
+    excess = _excess(costs, residuals)
     if prior is not None:
         excess = excess + prior
         excess = excess - excess.min(0).values
@@ -190,6 +204,8 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         rounds: assignment + refit rounds, ≥ 1.
         refit_iterations: LM iterations per refit of the candidates' parameters.
         cap, misfit: the per-texel cap on a box's evidence and the misfit deflation of :func:`_assign`.
+        albedo_prior, prior_cap: weight of the materials' albedo prior (:func:`_albedo_prior`; 0 = off)
+            and the cap on its cost — a texel that no material's albedo fits is left to the photos.
         evidence: χ² margin (noise model ``noise``) by which the best candidate must beat the second
             best before a texel is decided at a scale; candidates its own samples put further than
             this above their best are never assigned to it.

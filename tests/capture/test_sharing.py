@@ -6,7 +6,7 @@ import torch.nn.functional as F
 
 import materials
 from capture.observations import synthetic_observations
-from capture.sharing import _assign, _box_sum, kmeans_pp, share_materials
+from capture.sharing import _albedo_prior, _assign, _box_sum, _excess, kmeans_pp, share_materials
 from capture.solvers import Layout, SolverError, _SharingPrior, robust_rho, solve_fast
 
 
@@ -162,3 +162,32 @@ def test_share_option_validation():
         solve_fast(model, obs, candidates=0)
     with pytest.raises(SolverError, match="sharing"):
         solve_fast(model, obs, sharing=-1.0)
+
+
+def test_albedo_prior_by_hand():
+    # two materials: 0 = a metal whose 3 anchors have albedo 0, 1 = a textured one (albedo 0.2 / 0.6 / 0.4)
+    # texel 5 (own samples) has albedo (0.5, 0.5, 0.5) under both candidates; texel 6 has no own samples
+    T = 7
+    albedo = torch.zeros(2, T, 3, dtype=torch.float64)
+    albedo[1, 3:6] = torch.tensor([0.2, 0.6, 0.4], dtype=torch.float64)[:, None]
+    albedo[:, 5] = 0.5
+    albedo[:, 6] = 0.9
+    anchors = torch.tensor([1, 1, 1, 1, 1, 0, 0], dtype=torch.bool)
+    lab = torch.tensor([0, 0, 0, 1, 1])
+    own = torch.tensor([1, 1, 1, 1, 1, 1, 0], dtype=torch.bool)
+    c = _albedo_prior(albedo, anchors, lab, own, floor=0.1, min_anchors=2)
+    # material 0: mean 0, var 0 → (0.5² / 0.01) × 3 = 75; material 1 (anchors 3, 4: 0.2, 0.6): mean 0.4,
+    # var 0.04 → (0.1² / 0.05) × 3 = 0.6
+    torch.testing.assert_close(c[:, 5], torch.tensor([75.0, 0.6], dtype=torch.float64))
+    assert float(c[:, 6].abs().max()) == 0.0                     # no own samples: no prior
+    c3 = _albedo_prior(albedo, anchors, lab, own, floor=0.1, min_anchors=3)
+    assert float(c3[1].abs().max()) == 0.0                       # material 1 has 2 < 3 anchors: no prior
+
+
+def test_excess_deflates_texels_the_best_candidate_cannot_explain():
+    costs = torch.tensor([[10.0, 400.0], [40.0, 800.0]], dtype=torch.float64)   # [K=2, T=2]
+    residuals = torch.tensor([30.0, 100.0], dtype=torch.float64)
+    e = _excess(costs, residuals)
+    # texel 0 fits within the noise (χ²/n = 1/3 → s² = 1): excess 30; texel 1: s² = 4 → 400 / 4 = 100
+    torch.testing.assert_close(e, torch.tensor([[0.0, 0.0], [30.0, 100.0]], dtype=torch.float64))
+    torch.testing.assert_close(_excess(costs, None)[1], torch.tensor([30.0, 400.0], dtype=torch.float64))
