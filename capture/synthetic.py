@@ -65,6 +65,7 @@ from torch import Tensor
 from materials import Model
 from materials import presets as _presets
 from materials.fresnel import ior_from_f0
+from materials.roughness import half_max_angle
 from renderer.camera import Camera, orbit, random_rig, turntable
 from renderer.gbuffer import render_gbuffer
 from renderer.lights import PointLight
@@ -488,14 +489,6 @@ def build_scene(config: SyntheticConfig) -> Scene:
     return Scene(mesh, views, model, config.model, maps, regions)
 
 
-def _half_max_angle(roughness: Tensor) -> Tensor:
-    """Half-maximum angle (radians) of the GGX lobe, α = r²: cos²θ = (1 − √2 α²)/(1 − α²)."""
-    a2 = (roughness.double().clamp(0, 1) ** 2) ** 2
-    denom = torch.where(a2 < 1 - 1e-12, 1 - a2, torch.ones_like(a2))
-    c2 = torch.where(a2 < 1 - 1e-12, (1 - math.sqrt(2) * a2) / denom, torch.zeros_like(a2)).clamp(0, 1)
-    return torch.arccos(c2.sqrt())
-
-
 def highlight_coverage(prepared: list, texture_size: tuple[int, int], roughness: Tensor | None = None,
                        regions: Tensor | None = None, min_angle_deg: float = 1.0,
                        nominal_roughness: float = 0.5) -> dict:
@@ -516,9 +509,9 @@ def highlight_coverage(prepared: list, texture_size: tuple[int, int], roughness:
     observed = torch.zeros(H * W, dtype=torch.bool)
     high = torch.zeros(H * W, dtype=torch.bool)
     if roughness is not None:
-        theta = _half_max_angle(roughness.reshape(-1))
+        theta = half_max_angle(roughness.reshape(-1))
     else:
-        theta = _half_max_angle(torch.full((H * W,), float(nominal_roughness)))
+        theta = half_max_angle(torch.full((H * W,), float(nominal_roughness)))
     theta = theta.clamp_min(math.radians(min_angle_deg))
     cos_t = torch.cos(theta)
     for prep in prepared:

@@ -119,3 +119,16 @@ def roughness_to_glossiness(r: Tensor) -> Tensor:
 def glossiness_to_roughness(g: Tensor) -> Tensor:
     """Schüler g → perceptual r (inverse of :func:`roughness_to_glossiness` for g ∈ [0, G_MAX])."""
     return shininess_to_roughness(glossiness_to_shininess(g))
+
+
+def half_max_angle(r: Tensor) -> Tensor:
+    """Half-maximum angle θ½ (radians) of the GGX lobe of perceptual roughness ``r`` (α = r²):
+    D(θ½)/D(0) = ½ ⇔ cos²θ½ = (1 − √2 α²)/(1 − α²); θ½ ≈ 0.64 α for small α, π/2 once α² ≥ 1/√2.
+
+    Every model here maps roughness to the same α (Blinn-Phong through s = 2/α² − 2, matched at the
+    peak), so this is the width of any model's highlight to first order. Float64 for accuracy.
+    """
+    a2 = (_t(r).double().clamp(0, 1) ** 2) ** 2
+    denom = torch.where(a2 < 1 - 1e-12, 1 - a2, torch.ones_like(a2))
+    c2 = torch.where(a2 < 1 - 1e-12, (1 - math.sqrt(2) * a2) / denom, torch.zeros_like(a2)).clamp(0, 1)
+    return torch.arccos(c2.sqrt())

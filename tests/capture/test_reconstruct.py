@@ -1,13 +1,18 @@
 """End-to-end reconstruction on small synthetic scenes, and bad input."""
 
 import json
+import math
+from dataclasses import replace
 
 import pytest
 import torch
 
+import materials
 from capture.dataset import DatasetError
-from capture.reconstruct import ReconstructionError, reconstruct
+from capture.observations import synthetic_observations
+from capture.reconstruct import UNRESOLVED_WARN, ReconstructionError, reconstruct, unresolved_roughness
 from capture.synthetic import make_synthetic, small_scene
+from materials.roughness import half_max_angle
 
 
 @pytest.fixture(scope="module")
@@ -111,3 +116,32 @@ def test_errors_shrink_as_views_are_added_with_noise(tmp_path):
         rep = reconstruct(root, model="lambert", out_dir=tmp_path / f"o{n}", progress=False)
         errs.append(rep.errors["maps"]["albedo"]["rmse"])
     assert errs[1] < 0.75 * errs[0], errs
+
+
+def test_near_mirror_roughness_is_reported_unresolved(tmp_path):
+    # measured (small stress sphere): with true roughness 0.02 everywhere 80 % of the roughness-observable
+    # texels see only the far tail (θ_min > 3 θ½ in their 5×5 block) → the warning; normal maps 7 %
+    base = small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6)
+    reps = {}
+    for name, cfg in (("normal", base), ("mirror", replace(base, uniform={"roughness": 0.02}))):
+        make_synthetic(cfg, tmp_path / name)
+        reps[name] = reconstruct(tmp_path / name, model="ggx-lambert", out_dir=tmp_path / f"o_{name}", progress=False)
+    assert reps["mirror"].coverage["roughness_unresolved_fraction"] >= 0.7
+    assert any(w.startswith("roughness: in") and "upper bound" in w for w in reps["mirror"].warnings)
+    assert reps["normal"].coverage["roughness_unresolved_fraction"] < 0.5 * UNRESOLVED_WARN
+    assert not any(w.startswith("roughness: in") for w in reps["normal"].warnings)
+
+
+def test_unresolved_roughness_by_hand():
+    # one texel, one pair with θ_h = 10°: a lobe of θ½ = 2° (3 θ½ = 6° < 10°) is unresolved, one of θ½ = 5° is not
+    obs = synthetic_observations(materials.get("lambert"), {"albedo": torch.full((1, 1, 3), 0.5, dtype=torch.float64)},
+                                 samples_per_texel=1, n_lights=1)
+    nh = torch.full_like(obs.angles.nh, math.cos(math.radians(10.0)))
+    obs = replace(obs, angles=replace(obs.angles, nh=nh))
+    rs = torch.linspace(0.05, 0.6, 400, dtype=torch.float64)
+    th = half_max_angle(rs)
+    r2 = rs[(th - math.radians(2.0)).abs().argmin()]
+    r5 = rs[(th - math.radians(5.0)).abs().argmin()]
+    mask = torch.ones(1, 1, dtype=torch.bool)
+    assert unresolved_roughness(obs, r2.reshape(1, 1, 1), mask)[0] == 1.0
+    assert unresolved_roughness(obs, r5.reshape(1, 1, 1), mask)[0] == 0.0

@@ -14,7 +14,6 @@ from capture.synthetic import (
     REGION_NAMES,
     SyntheticConfig,
     SyntheticError,
-    _half_max_angle,
     build_scene,
     default_scene,
     highlight_coverage,
@@ -25,6 +24,7 @@ from capture.synthetic import (
 )
 from materials import presets
 from materials.microfacet import ndf_ggx
+from materials.roughness import half_max_angle
 from renderer.gbuffer import render_gbuffer
 from renderer.shading import prepare, shade
 from renderer.texture import texel_of
@@ -139,12 +139,12 @@ def test_nearest_sampling_each_pixel_reads_one_texel():
 
 def test_half_max_angle_is_the_ggx_half_maximum():
     r = torch.tensor([0.1, 0.3, 0.5, 0.7, 0.8], dtype=torch.float64)
-    theta = _half_max_angle(r)
+    theta = half_max_angle(r)
     alpha = (r**2)[:, None]
     ratio = ndf_ggx(torch.cos(theta)[:, None], alpha) / ndf_ggx(torch.ones_like(alpha), alpha)
     assert torch.allclose(ratio, torch.full_like(ratio, 0.5), rtol=1e-6)
     assert torch.allclose(theta[:2], 0.6436 * r[:2] ** 2, rtol=0.02)  # ≈ sqrt(√2 − 1)·α for small α
-    assert _half_max_angle(torch.tensor([0.95, 1.0], dtype=torch.float64)).eq(math.pi / 2).all()
+    assert half_max_angle(torch.tensor([0.95, 1.0], dtype=torch.float64)).eq(math.pi / 2).all()
 
 
 def test_highlight_coverage_brute_force():
@@ -154,7 +154,7 @@ def test_highlight_coverage_brute_force():
     rough = scene.maps["roughness"]
     cov = highlight_coverage(preps, (16, 16), rough, scene.regions)
     # brute force over every (sample, light) pair
-    cos_t = torch.cos(_half_max_angle(rough.reshape(-1)).clamp_min(math.radians(1.0)))
+    cos_t = torch.cos(half_max_angle(rough.reshape(-1)).clamp_min(math.radians(1.0)))
     seen, high = set(), set()
     for p in preps:
         seen |= set(texel_of(p.uv, 16, 16).tolist())
