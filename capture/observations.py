@@ -116,6 +116,15 @@ class Observations:
         H, W = self.map_size
         return torch.bincount(self.texel, minlength=H * W).reshape(H, W)
 
+    def footprint(self) -> Tensor:
+        """``[T]`` bool: texels some sample reads — its nearest texel, and with bilinear observations any
+        of its four texels with a positive weight (observed too, through their neighbours' samples)."""
+        seen = torch.zeros(self.n_texels, dtype=torch.bool, device=self.device)
+        seen[self.texel] = True
+        if self.bilinear_index is not None:
+            seen[self.bilinear_index[self.bilinear_weight > 0]] = True
+        return seen
+
     def views_per_texel(self) -> Tensor:
         """``[H, W]`` int64: in how many distinct views each texel was seen (by a kept sample)."""
         H, W = self.map_size

@@ -75,16 +75,6 @@ def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, itera
     return centres.to(x)
 
 
-def _footprint(obs: Observations) -> Tensor:
-    """``[T]`` bool: texels some sample reads — its nearest texel, or with bilinear sampling any of its
-    four texels with a positive weight (those are observed too, through their neighbours' samples)."""
-    seen = torch.zeros(obs.n_texels, dtype=torch.bool, device=obs.device)
-    seen[obs.texel] = True
-    if obs.bilinear_index is not None:
-        seen[obs.bilinear_index[obs.bilinear_weight > 0]] = True
-    return seen
-
-
 def _chi2_observations(obs: Observations, noise: tuple[float, float]) -> Observations:
     """The observations with weights divided by the photo noise variance (mean over channels), so
     that costs are χ² values: ``σ = rel · max(|y|, floor · median y)`` as in :func:`posterior_std`."""
@@ -242,7 +232,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     per_texel = [s for s in layout.specs if s.name == "albedo" and s.linear]
     shared = [s for s in layout.specs if s not in per_texel]
     info = {"materials": [], "shared": [s.name for s in shared], "share_s": 0.0}
-    observed = _footprint(obs)
+    observed = obs.footprint()
     anchors = anchors & observed
     if not shared or not per_texel or not bool(anchors.any()):
         info["labels"] = torch.full((T,), -1, dtype=torch.long, device=dev)

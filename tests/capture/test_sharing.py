@@ -191,3 +191,32 @@ def test_excess_deflates_texels_the_best_candidate_cannot_explain():
     # texel 0 fits within the noise (χ²/n = 1/3 → s² = 1): excess 30; texel 1: s² = 4 → 400 / 4 = 100
     torch.testing.assert_close(e, torch.tensor([[0.0, 0.0], [30.0, 100.0]], dtype=torch.float64))
     torch.testing.assert_close(_excess(costs, None)[1], torch.tensor([30.0, 400.0], dtype=torch.float64))
+
+
+def test_footprint_counts_bilinear_neighbours_with_positive_weight_only():
+    from dataclasses import replace
+
+    model = materials.get("lambert")
+    obs = synthetic_observations(model, {"albedo": torch.full((2, 3, 3), 0.5, dtype=torch.float64)},
+                                 samples_per_texel=1)
+    assert obs.footprint().tolist() == [True] * 6                    # nearest: every texel has its sample
+    keep = obs.select(obs.texel == 0)                                # one sample, in texel 0
+    assert keep.footprint().tolist() == [True] + [False] * 5
+    bil = replace(keep, bilinear_index=torch.tensor([[0, 1, 3, 4]]),
+                  bilinear_weight=torch.tensor([[0.7, 0.3, 0.0, 0.0]], dtype=keep.weight.dtype))
+    assert bil.footprint().tolist() == [True, True, False, False, False, False]
+
+
+def test_refine_joint_rejects_bad_sharing_options():
+    from capture.solvers import _groups, refine_joint
+
+    model = _ggx_lambert()
+    obs = synthetic_observations(model, _two_material_scene(), samples_per_texel=2)
+    layout = Layout.of(model)
+    theta = torch.zeros(obs.n_texels, layout.P, dtype=torch.float64)
+    groups = _groups(model, layout, obs.dtype)
+    with pytest.raises(SolverError, match="not parameters"):
+        refine_joint(model, obs, layout, theta, groups, loss="l2", delta=1.0, sampling="nearest", sharing=1.0,
+                     sharing_params=["gloss"])
+    with pytest.raises(SolverError, match="sharing must be"):
+        refine_joint(model, obs, layout, theta, groups, loss="l2", delta=1.0, sampling="nearest", sharing=-1.0)
