@@ -895,7 +895,10 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         theta, sinfo = share_materials(model, obs, layout, theta, anchors, candidates=candidates, noise=noise)
         info.update(share_s=sinfo["share_s"], materials=sinfo["materials"], shared=sinfo["shared"],
                     share_anchors=int(anchors.sum()))
-    elif joint and fill_before_joint:
+        # nothing to share from (no texel determined the shared parameters, or the model has none):
+        # fall back to the fill, as without sharing
+        share = bool(sinfo["materials"])
+    if joint and fill_before_joint and not share:
         # per-texel parameters the photos do not determine vary wildly from texel to texel; under
         # bilinear sampling they would mix into the neighbours' predictions, so they are replaced
         # by pull-push fills of the observable ones before the joint refinement
