@@ -895,6 +895,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         theta, sinfo = share_materials(model, obs, layout, theta, anchors, candidates=candidates, noise=noise)
         info.update(share_s=sinfo["share_s"], materials=sinfo["materials"], shared=sinfo["shared"],
                     share_anchors=int(anchors.sum()))
+        if progress is not None:
+            progress("share", it, history[-1])
         # nothing to share from (no texel determined the shared parameters, or the model has none):
         # fall back to the fill, as without sharing
         share = bool(sinfo["materials"])
