@@ -104,8 +104,11 @@ def _solve(model, obs: Observations, solver: str, loss: str, options: dict, prog
 
 
 def _heldout_rmse(model, fit: FitResult, obs: Observations, sampling: str = "nearest") -> float:
+    """RMSE of the held-out views re-rendered with the fit's *filled* maps — the maps a user gets: where
+    the training views left a parameter unobservable the raw per-texel value is arbitrary, and judging a
+    model by it penalised exactly the models with more (hence more often unobservable) parameters."""
     with torch.no_grad():
-        pred = obs.predict(model, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}, sampling))
+        pred = obs.predict(model, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.maps.items()}, sampling))
     return float((pred - obs.radiance).square().mean().sqrt())
 
 
