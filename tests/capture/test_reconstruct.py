@@ -156,3 +156,24 @@ def test_fully_rough_scene_still_warns_with_sharing_on(tmp_path):
     assert rep.fit["materials"] == [] and rep.fit["share_anchors"] == 0
     assert any("'roughness' is unobservable in every observed texel" in w for w in rep.warnings)
     assert rep.errors["maps"]["roughness"]["rmse"] < 0.1          # measured 0.078
+
+
+def test_heldout_error_of_auto_uses_the_filled_maps():
+    # auto must judge the maps a user gets: the raw per-texel values of unobservable parameters are arbitrary
+    from capture.reconstruct import _heldout_rmse
+    from capture.solvers import solve_fast
+
+    model = materials.get("ggx-lambert")
+    g = torch.Generator().manual_seed(0)
+    gt = {"albedo": torch.rand(4, 4, 3, generator=g, dtype=torch.float64) * 0.5 + 0.2,
+          "f0": torch.full((4, 4, 3), 0.04, dtype=torch.float64),
+          "roughness": torch.full((4, 4, 1), 0.5, dtype=torch.float64)}
+    obs = synthetic_observations(model, gt, samples_per_texel=8)
+    fit = solve_fast(model, obs)
+    base = _heldout_rmse(model, fit, obs)
+    # measured: one texel's albedo is flagged unobservable and filled from its neighbours → 0.055 (raw: ~1e-13)
+    assert 0.0 < base < 0.1
+    spoiled_raw = replace(fit, raw={k: torch.full_like(v, 0.9) for k, v in fit.raw.items()})
+    assert _heldout_rmse(model, spoiled_raw, obs) == base           # raw values are not what is judged
+    spoiled_maps = replace(fit, maps={k: torch.full_like(v, 0.9) for k, v in fit.maps.items()})
+    assert _heldout_rmse(model, spoiled_maps, obs) > 10 * base      # the filled maps are
