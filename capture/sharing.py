@@ -22,8 +22,8 @@ albedo, for exactly the flash-light setting), :func:`share_materials`
    candidate, albedo held) and repeats 2–3 ``rounds`` times.
 
 Anchors keep their own fit. Measured on the default scene (docs/reconstruction.md, "Reflectance
-sharing"): RMSE on all observed texels albedo / f0 / roughness 0.135 / 0.210 / 0.178 → 0.017 / 0.021 /
-0.056 after the joint refinement, 6 s.
+sharing"): RMSE on all observed texels albedo / f0 / roughness 0.135 / 0.210 / 0.178 → 0.017 / 0.016 /
+0.056 after the joint refinement; this stage takes 5 s of the 26.
 
 The result initialises the joint refinement, whose edge-preserving prior
 (:func:`capture.solvers.refine_joint` ``sharing=``) then lets well-observed texels depart from their
@@ -180,7 +180,7 @@ def _albedo_prior(albedo: Tensor, anchors: Tensor, anchor_label: Tensor, own: Te
 
 
 def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anchors: Tensor, *,
-                    candidates: int = 10, rounds: int = 2, refit_iterations: int = 5, evidence: float = 10.0,
+                    candidates: int = 8, rounds: int = 2, refit_iterations: int = 5, evidence: float = 10.0,
                     cap: float | None = 15.0, misfit: bool = True, albedo_prior: float = 1.0, prior_cap: float = 15.0,
                     noise: tuple[float, float] = (0.01, 0.1), seed: int = 0) -> tuple[Tensor, dict]:
     """Replace the shared parameters of every observed texel by those of one of a few materials.

@@ -476,7 +476,7 @@ def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, gr
     they stay flagged in ``unobservable``. Otherwise (a per-texel fit, where such values are arbitrary)
     they are replaced by pull-push fills of the observable ones. Measured on the default scene: the
     exported maps' RMSE on observed texels is 0.185 / 0.248 / 0.143 (albedo / f0 / roughness) with the
-    fill and 0.017 / 0.021 / 0.056 keeping the shared values."""
+    fill and 0.017 / 0.021 / 0.056 keeping the shared values (10 candidates)."""
     H, W = obs.map_size
     t_post = time.perf_counter()
     theta = theta.to(ACC)
@@ -688,7 +688,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                smoothness: float = 0.0, init: Mapping[str, Tensor] | None = None, tol: float = 1e-10,
                observable_std: float | Mapping[str, float] | None = None, noise=NOISE, reproject: int = 0,
                sampling: str = "nearest", joint_iterations: int = 2, cg_iterations: int = 25,
-               fill_before_joint: bool = True, share: bool | None = None, candidates: int = 10, sharing: float = 1.0,
+               fill_before_joint: bool = True, share: bool | None = None, candidates: int = 8, sharing: float = 1.0,
                progress: Callable[[str, int, float], None] | None = None) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
@@ -738,8 +738,9 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             and the joint refinement adds the edge-preserving prior of weight ``sharing`` between
             neighbours (:func:`refine_joint`). None = on whenever the joint refinement runs (bilinear
             sampling); it then replaces ``fill_before_joint``. Measured on the default scene (docs/
-            reconstruction.md): RMSE on all observed texels albedo / f0 / roughness 0.017 / 0.021 / 0.056
-            against 0.135 / 0.210 / 0.178 without, on observable texels 0.0007 / 0.0037 / 0.0026.
+            reconstruction.md): RMSE on all observed texels albedo / f0 / roughness 0.017 / 0.016 / 0.056
+            against 0.135 / 0.210 / 0.178 without, on observable texels 0.0007 / 0.0044 / 0.0020;
+            ``candidates`` 8 against 10: f0 0.021 → 0.016 here, 0.054 → 0.019 with fixed lights.
         reproject: every this many iterations re-solve the linear parameters in closed form at the
             current nonlinear ones (a variable-projection step, 1 + #linear evaluations); 0 = never.
         progress: callback ``(stage, iteration, cost)``.
@@ -1015,7 +1016,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     the preconditioner's diagonal, and the step acceptance compares data + prior. Measured on the
     default scene after :func:`capture.sharing.share_materials` (2 outer iterations): RMSE on all
     observed texels albedo / f0 / roughness 0.026 / 0.031 / 0.079 without the prior, 0.017 / 0.024 /
-    0.058 with μ = 1, δ = 1, 0.017 / 0.021 / 0.056 with δ = 0.3 (the default); μ = 0.3 or 3 change
+    0.058 with μ = 1, δ = 1, 0.017 / 0.021 / 0.056 with δ = 0.3 (the default; 10 candidates); μ = 0.3 or 3 change
     them by < 0.003.
 
     Returns:
