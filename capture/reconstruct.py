@@ -19,11 +19,14 @@
 Unobservable parameters (decision): a parameter the photos do not pin down in a texel — its
 marginal posterior std (:func:`capture.solvers.posterior_std`) at or above the threshold, e.g.
 roughness and f0 where no highlight was seen, or albedo and f0 trading off — is *not* an error: it
-is filled from observable neighbours (pull-push), flagged in ``unobservable_<name>.png``, its std
+is filled from observable neighbours (pull-push) — or, with reflectance sharing (the default for
+bilinear datasets), keeps its material's estimate — flagged in ``unobservable_<name>.png``, its std
 written to ``confidence_<name>.exr`` (NaN where unobserved), and counted in the report; errors
-against ground truth are reported on all observed texels and on the observable ones. Only when a
-parameter is unobservable in *every* observed texel does the report carry a warning (``warnings``)
-saying so, because then every value of that map is a fill, not a measurement.
+against ground truth are reported on all observed texels and on the observable ones. The report
+carries a warning (``warnings``) when a parameter is unobservable in *every* observed texel (every
+value of that map is a fill, not a measurement), and when in at least :data:`UNRESOLVED_WARN` of the
+roughness-observable texels the fitted lobe is narrower than the photos' direction sampling resolves
+(:func:`unresolved_roughness`: a near-mirror surface, whose roughness is then only an upper bound).
 """
 
 from __future__ import annotations
@@ -46,7 +49,8 @@ from materials.roughness import half_max_angle
 from .observations import Observations, observe_views
 from .solvers import LOSSES, FitResult, SolverError, solve_adam, solve_fast
 
-__all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES"]
+__all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "UNRESOLVED_WARN",
+           "unresolved_roughness"]
 
 #: Candidate models of ``model="auto"``, cheapest first (names not registered are skipped).
 AUTO_CANDIDATES = ("lambert", "ggx-lambert", "gotanda2012-layered")

@@ -212,9 +212,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     """
     from .solvers import (
         ACC,
-        MAX_STEP,
         _groups,
-        _jacobian,
         _linear_solve,
         _separable,
         from_canonical,
@@ -290,8 +288,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
             theta = cands[label, torch.arange(T, device=dev)]
             del albedo
             decided = {int(x): int((scale == x).sum()) for x in scale[observed].unique()}
-            mat = _refit(model, layout, chi, theta, mat, label, scols, groups, y, w, refit_iterations,
-                         _jacobian, ACC, MAX_STEP)
+            mat = _refit(model, layout, chi, theta, mat, label, scols, groups, y, w, refit_iterations)
         th = theta.clone()
         th[:, scols] = mat[label][:, scols]
         th, _ = _linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
@@ -321,9 +318,11 @@ def _from_canon(spec, x: Tensor) -> Tensor:
                                         spec.high - 1e-6 * min(spec.high - spec.low, 1.0)))
 
 
-def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iterations, jacobian, ACC, max_step):
+def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iterations):
     """Levenberg–Marquardt on each material's shared parameters over the samples of its texels
     (per-texel albedo in ``theta`` held), one damping factor and acceptance per material."""
+    from .solvers import ACC, MAX_STEP, _jacobian
+
     K = mat.shape[0]
     lab_s = label[obs.texel]
     Ps = len(scols)
@@ -340,7 +339,7 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
     cur = cost_of(mat)
     lam = torch.full((K,), 1e-3, dtype=ACC, device=y.device)
     for _ in range(iterations):
-        pred, J = jacobian(model, layout, obs, per_sample(mat), groups)
+        pred, J = _jacobian(model, layout, obs, per_sample(mat), groups)
         r = y - pred
         Js = J[:, :, scols]
         A = torch.zeros(K, Ps, Ps, dtype=ACC, device=y.device).index_add(
@@ -350,7 +349,7 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
         for _attempt in range(4):
             M = A + lam[:, None, None] * torch.diag_embed(d + 1e-12 * d.mean(-1, keepdim=True).clamp_min(1e-30))
             step = torch.nan_to_num(torch.linalg.solve_ex(M, g)[0])
-            step = step * (max_step / step.abs().amax(-1, keepdim=True).clamp_min(max_step))
+            step = step * (MAX_STEP / step.abs().amax(-1, keepdim=True).clamp_min(MAX_STEP))
             trial = mat.clone()
             trial[:, scols] = trial[:, scols] + step
             new = cost_of(trial)
