@@ -257,10 +257,9 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     own = residuals > 0
     kmeans_label = torch.cdist(feats, centres / thr).argmin(1)
     scale = torch.zeros(T, dtype=torch.long, device=dev)
-    first = True
     decided = {}
     with torch.no_grad():
-        for _ in range(rounds):
+        for rnd in range(rounds):
             costs, albedo = [], []
             for k in range(K):
                 th = theta.clone()
@@ -274,7 +273,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                 # the albedo statistics come from the anchors (labelled by k-means) and, after the first
                 # round, the texels their own samples decided; not from texels labelled by their neighbours,
                 # whose errors would widen a material's albedo range round after round
-                if first:
+                if rnd == 0:
                     stat_set, a_lab = anchors, kmeans_label
                 else:
                     stat_set = anchors | (own & (scale == 1))
@@ -282,7 +281,6 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                     a_lab[anchors[stat_set]] = kmeans_label
                 prior = (albedo_prior * _albedo_prior(layout.unpack(cands)[per_texel[0].name], stat_set, a_lab, own)
                          ).clamp_max(prior_cap)
-            first = False
             label, scale = _assign(torch.stack(costs), observed, H, W, evidence, cap, residuals if misfit else None,
                                    prior)
             theta = cands[label, torch.arange(T, device=dev)]
