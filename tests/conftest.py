@@ -41,3 +41,28 @@ try:
     settings.load_profile("shadecap")
 except ImportError:  # pragma: no cover
     pass
+
+
+def _finite_and_float32_matches(forward, compare, g, p, leaves, rtol, atol=1e-6):
+    """The stability body the model families' property tests share.
+
+    ``forward(g, p)`` (float64, ``p`` and ``leaves`` requiring grad) must be finite with finite gradients
+    for every leaf; ``compare(g, p)`` evaluated in float32 must match float64 *on the same float32-rounded
+    inputs* within ``rtol`` and ``atol · (1 + max |value|)``.
+    """
+    out = forward(g, p)
+    assert torch.isfinite(out).all()
+    out.sum().backward()
+    for x in leaves:
+        assert torch.isfinite(x.grad).all()
+    g32 = g.to(torch.float32)
+    p32 = {k: x.detach().float() for k, x in p.items()}
+    a32 = compare(g32, p32).double()
+    a64 = compare(g32.to(torch.float64), {k: x.double() for k, x in p32.items()})
+    assert torch.allclose(a32, a64, rtol=rtol, atol=atol * (1 + a64.abs().max().item()))
+
+
+@pytest.fixture(scope="session")
+def finite_and_float32_matches():
+    """:func:`_finite_and_float32_matches` (session-scoped, so hypothesis' ``@given`` tests may use it)."""
+    return _finite_and_float32_matches

@@ -237,7 +237,8 @@ _F0 = st.one_of(st.sampled_from([0.0, 1.0]), st.floats(0.0, 1.0))
 
 @given(nl=_COS, nv=_COS, phi=st.floats(0, 2 * math.pi), anti=st.booleans(), r=_R, f0=_F0,
        normalization=st.sampled_from(["fit", "exact"]))
-def test_extremes_finite_and_float32_matches_float64(nl, nv, phi, anti, r, f0, normalization):
+def test_extremes_finite_and_float32_matches_float64(nl, nv, phi, anti, r, f0, normalization,
+                                                    finite_and_float32_matches):
     m = materials.get("gotanda2010", normalization=normalization)
     n = torch.tensor([0.0, 0.0, 1.0], dtype=D64)
     l = _vec(nl).clone().requires_grad_()
@@ -246,18 +247,8 @@ def test_extremes_finite_and_float32_matches_float64(nl, nv, phi, anti, r, f0, n
          "f0": torch.full((3,), f0, dtype=D64, requires_grad=True),
          "roughness": torch.tensor([r], dtype=D64, requires_grad=True)}
     g = Angles.from_vectors(n, l, v)
-    out = m.brdf(g, p) + m.cosine_brdf(g, p)
-    assert torch.isfinite(out).all()
-    out.sum().backward()
-    for x in (l, v, *p.values()):
-        assert torch.isfinite(x.grad).all()
-    g32 = g.to(torch.float32)
-    g64 = g32.to(D64)
-    p32 = {k: x.detach().float() for k, x in p.items()}
-    p64 = {k: x.double() for k, x in p32.items()}
-    a32 = m.cosine_brdf(g32, p32).double()
-    a64 = m.cosine_brdf(g64, p64)
-    assert torch.allclose(a32, a64, rtol=2e-4, atol=1e-6 * (1 + a64.abs().max().item()))
+    finite_and_float32_matches(lambda g_, p_: m.brdf(g_, p_) + m.cosine_brdf(g_, p_), m.cosine_brdf, g, p,
+                               (l, v, *p.values()), rtol=2e-4)
 
 
 def test_exponent_up_to_2_16_finite():
