@@ -340,9 +340,10 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         report.coverage["roughness_unresolved_fraction"] = frac
         if frac >= UNRESOLVED_WARN:
             report.warnings.append(
-                f"roughness: in {frac:.0%} of the texels where it is called observable no sample's half vector came "
-                f"within the fitted lobe's half-maximum angle (median fitted roughness {med:.3f}) — the highlight "
-                f"peak was never seen, so the roughness there is an upper bound set by how densely the photos "
+                f"roughness: in {frac:.0%} of the texels where it is called observable no half vector of theirs or "
+                f"their neighbours' came within 3 half-maximum angles of the fitted lobe (median fitted roughness "
+                f"{med:.3f}) — the highlight peak was never seen, so the roughness there is an upper bound set by "
+                f"how densely the photos "
                 f"sample directions (a near-mirror surface), not a measurement; more views or light positions, "
                 f"or higher resolution, resolve it")
     report.fit = {"iterations": fit.iterations, "final_cost": fit.history[-1] if fit.history else None,
