@@ -15,7 +15,7 @@ Conventions: DESIGN.md and docs/conventions.md. This package depends on torch on
 from . import roughness
 from .environment import Environment, HemisphereLight, SHLight, sh_basis
 from .geometry import Angles, dot, safe_normalize
-from .model import Model, SumModel, available, get, register
+from .model import KnownParams, Model, SumModel, available, get, register
 from .params import CANONICAL, ParamSpec
 
 # Model families: importing them registers their models.
@@ -33,6 +33,6 @@ from . import presets  # noqa: E402,F401  isort: skip
 from . import measured  # noqa: E402,F401  isort: skip
 
 __all__ = [
-    "Angles", "CANONICAL", "Environment", "HemisphereLight", "Model", "ParamSpec", "SHLight",
+    "Angles", "CANONICAL", "Environment", "HemisphereLight", "KnownParams", "Model", "ParamSpec", "SHLight",
     "SumModel", "available", "dot", "get", "register", "roughness", "safe_normalize", "sh_basis",
 ]

@@ -139,6 +139,81 @@ class SumModel(Model):
         return sum(part.cosine_brdf(g, p) for part in self.parts)
 
 
+class KnownParams(Model):
+    """A model with some parameters held at known values: it exposes only the others.
+
+    ``params`` are the base model's minus the known ones, so a solver that allocates and fits
+    ``model.params`` never allocates, fits or reports the known ones (e.g. the coat's η and
+    roughness of :mod:`materials.layered` measured once for a whole object). :meth:`brdf`,
+    :meth:`cosine_brdf` and :meth:`environment` pass the known values, broadcast to the batch of
+    the free parameters, to the base model. :meth:`full` completes a parameter dict for the base.
+
+    Args:
+        base: the model to restrict.
+        known: parameter name → value: a number (every channel) or ``[channels]`` values in canonical
+            units, inside the parameter's declared range.
+
+    Raises:
+        ValueError: a name the base model does not have, a wrong channel count, a value out of
+            range or not finite, or every parameter known (nothing left to fit).
+    """
+
+    def __init__(self, base: Model, known: Mapping[str, object]):
+        if not isinstance(base, Model):
+            raise TypeError(f"KnownParams: base must be a materials.Model, got {type(base).__name__}")
+        if not known:
+            raise ValueError("KnownParams: give at least one known parameter (name → value)")
+        values = {}
+        for name, val in known.items():
+            if name not in base.param_names:
+                raise ValueError(f"known parameter '{name}': model '{base.name}' has no such parameter; it has "
+                                 f"{list(base.param_names)}")
+            spec = base.spec(name)
+            try:
+                t = torch.as_tensor(val, dtype=torch.float64).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f"known parameter '{name}': expected a number or {spec.channels} numbers, "
+                                 f"got {val!r}") from None
+            if t.numel() == 1:
+                t = t.expand(spec.channels)
+            if t.numel() != spec.channels:
+                raise ValueError(f"known parameter '{name}' has {spec.channels} channel(s), got {t.numel()} values")
+            if not bool(torch.isfinite(t).all()) or bool((t < spec.low).any()) or bool((t > spec.high).any()):
+                raise ValueError(f"known parameter '{name}' = {t.tolist()} is outside its range "
+                                 f"[{spec.low}, {spec.high}] or not finite")
+            values[name] = t.clone()
+        if len(values) == len(base.params):
+            raise ValueError(f"KnownParams: every parameter of '{base.name}' is known; nothing is left to fit")
+        self.base = base
+        self.known = values
+        self.name = base.name
+        self.description = base.description
+        self.params = tuple(s for s in base.params if s.name not in values)
+
+    def full(self, p: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """``p`` (free parameters, each ``[..., C]``) plus the known values broadcast to their batch."""
+        free = [x for x in p.values() if isinstance(x, Tensor)]
+        ref = free[0] if free else torch.zeros(1, dtype=torch.float64)
+        batch = torch.broadcast_shapes(*(x.shape[:-1] for x in free)) if free else ()
+        out = dict(p)
+        for k, t in self.known.items():
+            out[k] = t.to(dtype=ref.dtype, device=ref.device).expand(*batch, t.numel())
+        return out
+
+    def brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
+        return self.base.brdf(g, self.full(p))
+
+    def cosine_brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
+        return self.base.cosine_brdf(g, self.full(p))
+
+    def environment(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
+        return self.base.environment(env, n, v, self.full(p))
+
+    def __repr__(self) -> str:
+        known = ", ".join(f"{k}={[round(x, 6) for x in t.tolist()]}" for k, t in self.known.items())
+        return f"<KnownParams '{self.name}' params={list(self.param_names)} known: {known}>"
+
+
 # -- registry ---------------------------------------------------------------------------------
 _REGISTRY: dict[str, tuple[Callable[..., Model], str]] = {}
 

@@ -59,3 +59,34 @@ def test_lambert_golden_and_parameter_checks():
         m(n, n, n, albedo=torch.tensor([1.5, 0.0, 0.0]))
     with pytest.raises(ValueError, match="unknown parameter"):
         m(n, n, n, f0=torch.tensor([0.04]))
+
+
+def test_known_params_model_holds_values_and_exposes_the_rest():
+    base = materials.get("gotanda2012-layered")
+    m = materials.KnownParams(base, {"coat_ior": 1.5, "coat_roughness": [0.1]})
+    assert m.param_names == ("albedo", "f0", "roughness", "absorption")
+    gen = torch.Generator().manual_seed(3)
+    N = 64
+    g = Angles.from_cosines(torch.rand(N, 1, generator=gen, dtype=torch.float64) * 0.9 + 0.05,
+                            torch.rand(N, 1, generator=gen, dtype=torch.float64) * 0.9 + 0.05,
+                            torch.rand(N, 1, generator=gen, dtype=torch.float64) * 1.6 - 0.8)
+    p = {s.name: torch.rand(N, s.channels, generator=gen, dtype=torch.float64) * 0.5 + 0.1 for s in m.params}
+    before = {k: v.clone() for k, v in p.items()}
+    full = {**p, "coat_ior": torch.full((N, 1), 1.5, dtype=torch.float64),
+            "coat_roughness": torch.full((N, 1), 0.1, dtype=torch.float64)}
+    torch.testing.assert_close(m.brdf(g, p), base.brdf(g, full), rtol=0, atol=0)
+    torch.testing.assert_close(m.cosine_brdf(g, p), base.cosine_brdf(g, full), rtol=0, atol=0)
+    assert all(torch.equal(p[k], before[k]) for k in p)          # inputs untouched
+    # a different coat value changes the result (the known value is really used)
+    other = materials.KnownParams(base, {"coat_ior": 2.0, "coat_roughness": 0.1})
+    assert (other.brdf(g, p) - m.brdf(g, p)).abs().max() > 1e-3
+    # per-channel values and validation with messages that name the problem
+    mk = materials.KnownParams(base, {"absorption": [0.1, 0.2, 0.3]})
+    assert "absorption" not in mk.param_names and mk.known["absorption"].tolist() == [0.1, 0.2, 0.3]
+    for bad, msg in (({"nope": 1.0}, "no such parameter"), ({"coat_ior": 0.5}, "outside its range"),
+                     ({"absorption": [0.1, 0.2]}, "3 channel"), ({"coat_ior": float("nan")}, "not finite"),
+                     ({}, "at least")):
+        with pytest.raises(ValueError, match=msg):
+            materials.KnownParams(base, bad)
+    with pytest.raises(ValueError, match="nothing is left"):
+        materials.KnownParams(materials.get("lambert"), {"albedo": 0.5})
