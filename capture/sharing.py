@@ -354,7 +354,7 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
         for _attempt in range(4):
             M = A + lam[:, None, None] * torch.diag_embed(d + 1e-12 * d.mean(-1, keepdim=True).clamp_min(1e-30))
             step = torch.nan_to_num(torch.linalg.solve_ex(M, g)[0])
-            step = step * (MAX_STEP / step.abs().amax(-1, keepdim=True).clamp_min(MAX_STEP))
+            step = step.clamp(-MAX_STEP, MAX_STEP)
             trial = mat.clone()
             trial[:, scols] = trial[:, scols] + step
             new = cost_of(trial)

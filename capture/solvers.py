@@ -39,6 +39,7 @@ flagged; ``FitResult.raw`` keeps the fitted values.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -247,7 +248,7 @@ def _init_theta(model: Model, layout: Layout, obs: Observations, init: Mapping[s
             if m.dim() != 3 or tuple(m.shape[:2]) != tuple(obs.map_size):
                 raise SolverError(f"init map '{k}' must be [H, W, C] with (H, W) = {obs.map_size}, "
                                   f"got {tuple(m.shape)}")
-            params[k] = m.reshape(T, -1).to(dt, dev).expand(T, model.spec(k).channels)
+            params[k] = m.reshape(T, -1).to(dtype=dt, device=dev).expand(T, model.spec(k).channels)
     return layout.pack(params)
 
 
@@ -616,71 +617,109 @@ def _linear_solve(model: Model, layout: Layout, obs: Observations, theta: Tensor
     return cand, cost
 
 
+def _start_values(spec: ParamSpec) -> list[float]:
+    """Starting values of a secondary nonlinear parameter for the closed-form initialisation: its
+    default, and for a bounded RGB one (e.g. f0 where it is not linear: Gotanda's diffuse·(1 − f0),
+    the coat's relative f0) also 90 % of its range — a metal's f0 is a different basin from a
+    dielectric's, which LM from 0.04 does not reach (measured: docs/reconstruction.md)."""
+    if spec.channels == 3 and _bounded(spec) and not spec.linear:
+        return [spec.low + 0.1 * (spec.high - spec.low), spec.low + 0.9 * (spec.high - spec.low)]
+    return [spec.default]
+
+
 def _closed_form_init(model: Model, layout: Layout, obs: Observations, theta: Tensor, grid: int,
-                      loss: str, delta: float, sep: dict[str, bool], refine: int = 3) -> tuple[Tensor, dict]:
+                      loss: str, delta: float, sep: dict[str, bool], refine: int = 3,
+                      fixed: Sequence[str] = ()) -> tuple[Tensor, dict]:
     """Closed-form linear parameters per texel for each of ``grid`` values of the main nonlinear
     one; keep the best per texel, then coarse to fine: ``refine`` rounds, each trying the best
     value ± h (log units) and the vertex of the parabola through those three costs (three
-    closed-form solves with per-texel values), keeping the best and dividing h by 3."""
+    closed-form solves with per-texel values), keeping the best and dividing h by 3.
+
+    The other nonlinear parameters stay at θ — or, when some have several :func:`_start_values`
+    (and are not in ``fixed``, i.e. given by the caller's ``init``), the search runs once per
+    combination of starts and each texel keeps its cheapest."""
     lin = [s for s in layout.specs if s.linear]
     nonlin = [s for s in layout.specs if not s.linear]
     info = {"linear": [s.name for s in lin], "grid_param": None, "grid": 0}
     if not lin:
         return theta, info
-    T, dt, dev = obs.n_texels, ACC, obs.device
     primary = next((s for s in nonlin if s.channels == 1), None)
     with torch.no_grad():
         if primary is None or grid <= 1:
             cand, _ = _linear_solve(model, layout, obs, theta, lin, sep, loss, delta)
             return cand, info
-        values = _grid_values(primary, grid, dt, dev)
+        values = _grid_values(primary, grid, ACC, obs.device)
         info.update(grid_param=primary.name, grid=len(values))
-        pc = layout.cols(primary.name)
-        ar = torch.arange(T, device=dev)
-
-        def at(x):                       # closed-form solve at per-texel log-values x [T]
+        multi = [s for s in nonlin if s is not primary and s.name not in fixed and len(_start_values(s)) > 1]
+        best, best_cost, n_solves = None, None, 0
+        for combo in itertools.product(*(_start_values(s) for s in multi)):
             th = theta.clone()
-            th[:, pc] = from_canonical(primary, torch.exp(x)[:, None].clamp(primary.low, primary.high))
-            return _linear_solve(model, layout, obs, th, lin, sep, loss, delta)
-
-        costs, cands = [], []
-        for val in values:
-            th = theta.clone()
-            th[:, pc] = from_canonical(primary, val.expand(T, 1))
-            cand, cost = _linear_solve(model, layout, obs, th, lin, sep, loss, delta)
-            costs.append(cost)
-            cands.append(cand)
-        costs_t = torch.stack(costs)                                       # [G, T]
-        k = costs_t.argmin(0)
-        best = torch.stack(cands)[k, ar]
-        best_cost = costs_t[k, ar]
-        del cands
-        n_solves = len(values)
-        # coarse to fine (variable projection in 1-D: every trial re-solves the linear parameters):
-        # each round tries x ± h and the vertex of the parabola through the three costs, keeps
-        # the best of the four per texel and shrinks h by 3
-        xl = torch.log(values.clamp_min(1e-12))
-        h = (xl[1:] - xl[:-1]).mean() if len(values) > 1 else torch.tensor(0.5, dtype=dt)
-        x = xl[k]
-        lo, hi = math.log(max(primary.low, 1e-4)), math.log(primary.high)
-        for _ in range(refine):
-            xm, xp = (x - h).clamp(lo, hi), (x + h).clamp(lo, hi)
-            candm, cm = at(xm)
-            candp, cp = at(xp)
-            den = cm - 2 * best_cost + cp
-            ok = den > 0
-            xv = torch.where(ok, x + 0.5 * h * (cm - cp) / den.where(ok, torch.ones_like(den)), x)
-            xv = torch.minimum(torch.maximum(xv, xm), xp)
-            candv, cv = at(xv)
-            n_solves += 3
-            for c_, k_, x_ in ((candm, cm, xm), (candp, cp, xp), (candv, cv, xv)):
-                better = k_ < best_cost
-                best = torch.where(better[:, None], c_, best)
-                best_cost = torch.where(better, k_, best_cost)
-                x = torch.where(better, x_, x)
-            h = h / 3
+            for s, val in zip(multi, combo, strict=True):
+                th[:, layout.cols(s.name)] = from_canonical(s, torch.full_like(th[:, layout.cols(s.name)], val))
+            cand, cost, n = _grid_search(model, layout, obs, th, primary, values, lin, sep, loss, delta, refine)
+            n_solves += n
+            if best is None:
+                best, best_cost = cand, cost
+            else:
+                better = cost < best_cost
+                best = torch.where(better[:, None], cand, best)
+                best_cost = torch.where(better, cost, best_cost)
         info["grid_solves"] = n_solves
+        if multi:
+            info["grid_starts"] = {s.name: _start_values(s) for s in multi}
     return best, info
+
+
+def _grid_search(model: Model, layout: Layout, obs: Observations, theta: Tensor, primary: ParamSpec,
+                 values: Tensor, lin: list[ParamSpec], sep: dict[str, bool], loss: str, delta: float,
+                 refine: int) -> tuple[Tensor, Tensor, int]:
+    """One grid + coarse-to-fine search of :func:`_closed_form_init` → (θ [T, P], cost [T], solves)."""
+    T, dt, dev = obs.n_texels, ACC, obs.device
+    pc = layout.cols(primary.name)
+    ar = torch.arange(T, device=dev)
+
+    def at(x):                       # closed-form solve at per-texel log-values x [T]
+        th = theta.clone()
+        th[:, pc] = from_canonical(primary, torch.exp(x)[:, None].clamp(primary.low, primary.high))
+        return _linear_solve(model, layout, obs, th, lin, sep, loss, delta)
+
+    costs, cands = [], []
+    for val in values:
+        th = theta.clone()
+        th[:, pc] = from_canonical(primary, val.expand(T, 1))
+        cand, cost = _linear_solve(model, layout, obs, th, lin, sep, loss, delta)
+        costs.append(cost)
+        cands.append(cand)
+    costs_t = torch.stack(costs)                                       # [G, T]
+    k = costs_t.argmin(0)
+    best = torch.stack(cands)[k, ar]
+    best_cost = costs_t[k, ar]
+    del cands
+    n_solves = len(values)
+    # coarse to fine (variable projection in 1-D: every trial re-solves the linear parameters):
+    # each round tries x ± h and the vertex of the parabola through the three costs, keeps
+    # the best of the four per texel and shrinks h by 3
+    xl = torch.log(values.clamp_min(1e-12))
+    h = (xl[1:] - xl[:-1]).mean() if len(values) > 1 else torch.tensor(0.5, dtype=dt)
+    x = xl[k]
+    lo, hi = math.log(max(primary.low, 1e-4)), math.log(primary.high)
+    for _ in range(refine):
+        xm, xp = (x - h).clamp(lo, hi), (x + h).clamp(lo, hi)
+        candm, cm = at(xm)
+        candp, cp = at(xp)
+        den = cm - 2 * best_cost + cp
+        ok = den > 0
+        xv = torch.where(ok, x + 0.5 * h * (cm - cp) / den.where(ok, torch.ones_like(den)), x)
+        xv = torch.minimum(torch.maximum(xv, xm), xp)
+        candv, cv = at(xv)
+        n_solves += 3
+        for c_, k_, x_ in ((candm, cm, xm), (candp, cp, xp), (candv, cv, xv)):
+            better = k_ < best_cost
+            best = torch.where(better[:, None], c_, best)
+            best_cost = torch.where(better, k_, best_cost)
+            x = torch.where(better, x_, x)
+        h = h / 3
+    return best, best_cost, n_solves
 
 
 def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: float | None = None,
@@ -780,7 +819,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     if sampling == "bilinear" and obs.bilinear_index is None:
         raise SolverError("sampling='bilinear' needs observations built with bilinear=True (observe_views)")
     noise = _check_noise(noise)
-    theta, info = _closed_form_init(model, layout, obs, theta, grid, loss, delta, sep, refine)
+    theta, info = _closed_form_init(model, layout, obs, theta, grid, loss, delta, sep, refine,
+                                    fixed=tuple(init or ()))
     info["grid_s"] = time.perf_counter() - t_grid
     info["jacobian_passes"] = len(groups)
     observed = torch.zeros(T, dtype=torch.bool, device=dev)
@@ -841,8 +881,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                 # trust region in θ: a step of more than MAX_STEP (in logit/softplus units) is scaled
                 # down, so that a poor linearisation cannot throw a parameter into the flat tail of
                 # its sigmoid (dp/dθ ≈ 0) from where it would never return
-                big = step.abs().amax(-1, keepdim=True)
-                step = step * (MAX_STEP / big.clamp_min(MAX_STEP))
+                step = step.clamp(-MAX_STEP, MAX_STEP)
                 trial = theta + step
                 pred_t = obs.predict(model, layout.unpack(trial[obs.texel].to(obs.dtype))) if sub is obs else None
                 if pred_t is None:
@@ -1142,8 +1181,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                         break
                     d = z + (rz_new / rz) * d
                     rz = rz_new
-                big = x.abs().amax(-1, keepdim=True)
-                x = x * (MAX_STEP / big.clamp_min(MAX_STEP))
+                x = x.clamp(-MAX_STEP, MAX_STEP)
                 trial = theta + x
                 new_cost = total_of(trial)
                 if new_cost < cost:
