@@ -37,6 +37,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -44,12 +45,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from materials import KnownParams
 from materials.roughness import half_max_angle
 
 from .observations import Observations, observe_views
 from .solvers import LOSSES, FitResult, SolverError, solve_adam, solve_fast
 
-__all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "UNRESOLVED_WARN",
+__all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "SCALARS", "UNRESOLVED_WARN",
            "unresolved_roughness"]
 
 #: Candidate models of ``model="auto"``, cheapest first (names not registered are skipped).
@@ -82,12 +84,17 @@ class Report:
         return asdict(self)
 
 
-def _model(name):
+def _model(name, known: Mapping[str, object] | None = None):
+    """The model ``name``; with ``known``, those of its parameters that it has are held at their values
+    (:class:`materials.KnownParams`) — names it lacks are ignored here (``reconstruct`` checks that each
+    known name belongs to some candidate)."""
     from capture.dataset import model_from_spec
 
     try:
-        return model_from_spec(name)
-    except ValueError as exc:
+        m = model_from_spec(name)
+        mine = {k: v for k, v in (known or {}).items() if k in m.param_names}
+        return KnownParams(m, mine) if mine else m
+    except (ValueError, KeyError) as exc:
         raise ReconstructionError(f"model {name!r}: {exc}") from None
 
 
@@ -105,6 +112,26 @@ def _solve(model, obs: Observations, solver: str, loss: str, options: dict, prog
                                   f"adam takes {list(_ADAM_KEYS)}")
     fn = solve_fast if solver == "fast" else solve_adam
     return fn(model, obs, loss=loss, progress=progress, **{k: v for k, v in options.items() if k in keys})
+
+
+#: Parameters fitted as one value for the whole object by default (the issue's "coat η and roughness as
+#: known or fitted scalars": one coat over a whole object).
+SCALARS = ("coat_ior", "coat_roughness")
+
+
+def _fit_scalars(model, fit: FitResult, names) -> tuple[dict[str, list[float]], dict]:
+    """One value per parameter in ``names`` from a per-texel fit: the channel-wise median over the texels
+    where the parameter is observable (over all observed texels, flagged ``measured: False``, when it is
+    observable nowhere). Returns (values, notes for the report)."""
+    values, notes = {}, {}
+    for n in names:
+        C = model.spec(n).channels
+        ok = (fit.observed & ~fit.unobservable[n]).reshape(-1)
+        src = ok if bool(ok.any()) else fit.observed.reshape(-1)
+        v = fit.raw[n].reshape(-1, C)[src].double().median(0).values
+        values[n] = v.tolist()
+        notes[n] = {"value": v.tolist(), "from_texels": int(src.sum()), "measured": bool(ok.any())}
+    return values, notes
 
 
 def _heldout_rmse(model, fit: FitResult, obs: Observations, sampling: str = "nearest") -> float:
@@ -173,7 +200,8 @@ def _grid_image(rows: list[list[Tensor]]) -> Tensor:
 def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool = False, solver: str = "fast",
                 loss: str = "l2", texture_size: int | None = None, dtype: torch.dtype = torch.float32,
                 progress: bool = True, auto_gain: float = 0.05, max_grid_views: int = 8, sampling: str | None = None,
-                threads: int | None = None, **options) -> Report:
+                threads: int | None = None, known: Mapping[str, object] | None = None,
+                scalars: tuple[str, ...] | list[str] = SCALARS, **options) -> Report:
     """Recover the material maps of a dataset and write them to ``out_dir`` (see module docstring).
 
     Args:
@@ -194,6 +222,18 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         threads: torch intra-op threads for this call (restored after); None = leave as is. On a
             machine where another process holds a core, 1 thread is much faster than 2 (measured
             ~70× on small index_add ops: OpenMP threads wait for the busy core).
+        known: parameter name → value (a number, or one per channel, canonical units) held fixed
+            instead of fitted — e.g. ``{"coat_ior": 1.5, "coat_roughness": 0.1}``, the coat of a
+            layered material measured once for the whole object (the issue's "coat η and roughness
+            as known scalars"). Each name must belong to the model (with ``"auto"``: to some
+            candidate; candidates without it fit as usual). Known maps are written as constant maps
+            and listed in the report (``skipped.parameters_known``), not counted as fitted.
+        scalars: parameters fitted as *one* value for the whole object rather than per texel (default
+            :data:`SCALARS`: the coat's η and roughness; names the model lacks are ignored): a per-texel
+            fit, then each one's median over the texels where it is observable (``fit.scalars`` in the
+            report, with a warning where it is observable nowhere), held fixed in a second fit of the
+            rest. Known values take precedence. ``()`` = everything per texel. Not applied to the trial
+            fits of ``model="auto"``, only to the final one.
         **options: passed to the solver (iterations, grid, schedule, smoothness, delta, lr, ...).
 
     Returns:
@@ -211,7 +251,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         try:
             return reconstruct(dataset_path, model, out_dir, force=force, solver=solver, loss=loss,
                                texture_size=texture_size, dtype=dtype, progress=progress, auto_gain=auto_gain,
-                               max_grid_views=max_grid_views, sampling=sampling, threads=None, **options)
+                               max_grid_views=max_grid_views, sampling=sampling, threads=None, known=known,
+                               scalars=scalars, **options)
         finally:
             torch.set_num_threads(old)
     from capture.dataset import load_dataset
@@ -235,8 +276,19 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     if model == "auto":
         candidates = [m for m in AUTO_CANDIDATES if m in materials.available()]
     else:
-        _model(model)  # unknown names fail before any work
         candidates = [model]
+    known = dict(known or {})
+    if isinstance(scalars, str) or not all(isinstance(n, str) for n in scalars):
+        raise ReconstructionError(f"scalars must be a tuple of parameter names, got {scalars!r}")
+    scalars = tuple(n for n in scalars if n not in known)
+    if known:
+        params = set().union(*(_model(c).param_names for c in candidates))
+        stray = sorted(set(known) - params)
+        if stray:
+            raise ReconstructionError(f"known parameter(s) {stray} belong to no model tried ({candidates}); "
+                                      f"their parameters are {sorted(params)}")
+    for c in candidates:
+        _model(c, known)  # unknown names and bad known values fail before any work
     ds = load_dataset(dataset_path)
     times["load"] = time.perf_counter() - t
 
@@ -291,7 +343,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         test_obs = obs.select_views(held) if held else obs
         best_err, chosen = math.inf, candidates[0]
         for name in candidates:
-            m = _model(name)
+            m = _model(name, known)
             ts = time.perf_counter()
             fit = _solve(m, train_obs, solver, loss, options, cb)
             err = _heldout_rmse(m, fit, test_obs, sampling)
@@ -307,21 +359,39 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         report.skipped["models_not_tried"] = skipped
         model = chosen
     times["select"] = time.perf_counter() - t
-    mdl = _model(model)
+    mdl = _model(model, known)
     report.model = model
-    unused = sorted(set(materials.CANONICAL) - set(mdl.param_names))
-    report.skipped["parameters_not_allocated"] = unused
 
     # -- solve ----------------------------------------------------------------------------------
     t = time.perf_counter()
+    scalar_notes = {}
     try:
         fit = _solve(mdl, obs, solver, loss, options, cb)
+        to_fit = [n for n in scalars if n in mdl.param_names]
+        if to_fit:
+            # per-texel fit first, then each scalar parameter's median where it is observable, held
+            # fixed in a second fit of the rest
+            values, notes = _fit_scalars(mdl, fit, to_fit)
+            scalar_notes = notes
+            for n, note in notes.items():
+                if not note["measured"]:
+                    report.warnings.append(f"parameter '{n}' is fitted as one value for the object but is "
+                                           f"unobservable in every texel; its value {note['value']} is a guess")
+            mdl = KnownParams(getattr(mdl, "base", mdl), {**getattr(mdl, "known", {}), **values})
+            fit = _solve(mdl, obs, solver, loss, options, cb)
     except SolverError as exc:
         raise ReconstructionError(str(exc)) from None
     finally:
         if bar is not None:
             bar.close()
     times["solve"] = time.perf_counter() - t
+    known_used = getattr(mdl, "known", {})
+    unused = sorted(set(materials.CANONICAL) - set(mdl.param_names) - set(known_used))
+    report.skipped["parameters_not_allocated"] = unused
+    if known_used:
+        report.skipped["parameters_known"] = {k: t_.tolist() for k, t_ in known_used.items()}
+    H, W = obs.map_size
+    known_maps = {k: t_.to(torch.float32).expand(H, W, t_.numel()) for k, t_ in known_used.items()}
     observed = fit.observed
     spt, vpt = obs.samples_per_texel(), obs.views_per_texel()
     report.coverage = {"texels": int(observed.numel()), "observed": int(observed.sum()),
@@ -348,6 +418,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                 f"or higher resolution, resolve it")
     report.fit = {"iterations": fit.iterations, "final_cost": fit.history[-1] if fit.history else None,
                   "seconds": fit.time_s, **{k: v for k, v in fit.info.items() if k != "accepted"}}
+    if scalar_notes:
+        report.fit["scalars"] = scalar_notes
     report.skipped["pixels_not_evaluated"] = {k: v for k, v in obs.drops.items()}
     report.skipped["pixel_fraction_skipped"] = 1 - obs.n_samples / max(n_pix, 1)
 
@@ -362,6 +434,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                                                       ds.gt.region_names, exclude=fit.unobservable)
         report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
         report.errors["observability"] = observability_errors(fit.raw, ds.gt.maps, observed, fit.unobservable)
+        if known_maps:  # how far the given values are from the truth, over the observed texels
+            report.errors["known"] = map_errors(known_maps, ds.gt.maps, observed, None, None)
         report.errors["gt_model"] = ds.gt.model
     renders = []
     with torch.no_grad():
@@ -382,25 +456,28 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     # -- write ----------------------------------------------------------------------------------
     t = time.perf_counter()
-    _write_outputs(out_dir, ds, fit, obs, renders, photos, report, times, force, max_grid_views, spt, vpt)
+    _write_outputs(out_dir, ds, fit, obs, renders, photos, report, times, force, max_grid_views, spt, vpt,
+                   known_maps)
     return report
 
 
 def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, report: Report, times, force,
-                   max_grid_views, spt: Tensor, vpt: Tensor) -> None:
+                   max_grid_views, spt: Tensor, vpt: Tensor, known_maps: Mapping[str, Tensor]) -> None:
     from renderer.imageio import write_exr, write_png
 
     t = time.perf_counter()
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp"))
     try:
-        for k, m in fit.maps.items():
+        for k, m in {**fit.maps, **known_maps}.items():
             write_exr(tmp / f"{k}.exr", m.float())
             png = m if m.shape[-1] in (1, 3) else m[..., :3]
             if math.isfinite(float(m.max())) and float(m.max()) > 1:
                 png = png / float(png.max())
             write_png(tmp / f"{k}.png", png.float().clamp(0, 1),
                       transfer="srgb" if k == "albedo" or k == "f0" else "linear")
+            if k in known_maps:
+                continue
             write_exr(tmp / f"confidence_{k}.exr", fit.confidence[k].float(), allow_nonfinite=True)
             write_png(tmp / f"unobservable_{k}.png", fit.unobservable[k].float()[..., None], transfer="linear")
         write_exr(tmp / "coverage.exr", torch.stack([spt.float(), vpt.float(), fit.observed.float()], -1))

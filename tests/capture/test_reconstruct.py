@@ -13,6 +13,7 @@ from capture.observations import synthetic_observations
 from capture.reconstruct import UNRESOLVED_WARN, ReconstructionError, reconstruct, unresolved_roughness
 from capture.synthetic import make_synthetic, small_scene
 from materials.roughness import half_max_angle
+from renderer.imageio import read_exr
 
 
 @pytest.fixture(scope="module")
@@ -61,16 +62,16 @@ def test_bad_input(lambert_ds, tmp_path):
 # each map is observable — marginal posterior std below the threshold under a 1 % photo noise
 # model — and the observable fraction):
 #   ggx-lambert      albedo 6.7e-6 (68 %), f0 6.1e-8 (23 %), roughness 3.7e-5 (38 %)
-#   gotanda2012      albedo 4.6e-8 (33 %), f0 3.5e-8 (22 %), roughness 1.9e-4 (56 %)
+#   gotanda2012      albedo 1.4e-7 (37 %), f0 3.3e-8 (26 %), roughness 8.0e-5 (59 %)
 #   nielsen-mixture  albedo 3.1e-8 (100 %), roughness 5.5e-7 (6 %); specular, ior, mix: 0 %
 #   schuler          albedo 8.5e-7 (95 %), f0 4.1e-8 (28 %), roughness 7.9e-8 (36 %)
-# Thresholds: RMSE < 1e-3 (≥ 5× margin, the worst being gotanda2012's roughness) and the observable
+# Thresholds: RMSE < 1e-3 (≥ 12× margin, the worst being gotanda2012's roughness) and the observable
 # fraction at least half the measured one. On *all* observed texels the errors are large (e.g.
 # ggx-lambert f0 0.12): the flash rig leaves trade-offs the photos do not resolve — those texels
 # are flagged, never reported as recovered.
 FAMILIES = {
     "ggx-lambert": {"albedo": 0.68, "f0": 0.23, "roughness": 0.38},
-    "gotanda2012": {"albedo": 0.33, "f0": 0.22, "roughness": 0.56},
+    "gotanda2012": {"albedo": 0.37, "f0": 0.26, "roughness": 0.59},
     "nielsen-mixture": {"albedo": 1.0, "roughness": 0.06},
     "schuler": {"albedo": 0.95, "f0": 0.28, "roughness": 0.36},
 }
@@ -85,10 +86,60 @@ def test_model_family_regression(name, tmp_path):
     for k, frac in FAMILIES[name].items():
         assert rep.coverage["observable_fraction"][k] >= 0.5 * frac, (k, rep.coverage["observable_fraction"])
         assert rep.errors["maps_observable"][k]["rmse"] < 1e-3, (k, rep.errors["maps_observable"][k])
-    # gotanda2012 (f0 is not linear there: diffuse · (1 − F0)) leaves some texels in a local minimum
-    # (measured worst view 21.6 dB); their residual variance inflates the posterior std, so they are
-    # flagged rather than reported — the observable-texel errors above still hold
-    assert min(v["psnr"] for v in rep.views) > (20 if name == "gotanda2012" else 60)
+    # every fit explains its photos (worst view measured: gotanda2012 86.2 dB — 21.6 dB before session 4's
+    # per-component trust region and f0 starts —, ggx-lambert 118, schuler 133, nielsen-mixture 147)
+    assert min(v["psnr"] for v in rep.views) > 60
+
+
+def test_layered_family_with_coat_scalars(tmp_path):
+    # gotanda2012-layered (Blinn-Phong coat with linear absorption over gotanda2010), the same 64 px,
+    # 6-view, 16² nearest-sampled float64 scene as above with one coat for the object (roughness 0.1;
+    # η 1.5 everywhere in the synthetic maps). Measured: the coat scalars fitted to 1.4999996 / 0.10000002
+    # (median over the 19 / 5 texels where they are observable), re-renders ≥ 83.7 dB, observable
+    # fractions albedo 28 %, f0 3 %, roughness 22 %, absorption 48 %, observable-texel RMSE ≤ 4.1e-4
+    # outside the coated region (before session 4 the fit did not converge: 22-25 dB re-renders).
+    # The coated region is left out of the error check on purpose: its truth absorbs G and B fully
+    # (α' 0.8 and 2.0 clip the linear absorption to 0) and its bottom f0 0.04 is index-matched to the
+    # coat (relative f0 = 0: no bottom lobe), so other parameter sets render the same photos there and
+    # the posterior, linearised at the fitted values, cannot tell (docs/reconstruction.md).
+    root = tmp_path / "layered"
+    make_synthetic(small_scene("gotanda2012-layered", image_size=64, texture_size=16, n_views=6, sampling="nearest",
+                               uniform={"coat_roughness": 0.1}), root)
+    rep = reconstruct(root, model="gotanda2012-layered", out_dir=tmp_path / "o", progress=False, dtype=torch.float64)
+    sc = rep.fit["scalars"]
+    assert abs(sc["coat_ior"]["value"][0] - 1.5) < 1e-4 and abs(sc["coat_roughness"]["value"][0] - 0.1) < 1e-4, sc
+    assert sc["coat_ior"]["measured"] and sc["coat_roughness"]["measured"]
+    assert min(v["psnr"] for v in rep.views) > 60
+    for k, frac in {"albedo": 0.28, "f0": 0.03, "roughness": 0.22, "absorption": 0.48}.items():
+        assert rep.coverage["observable_fraction"][k] >= 0.5 * frac, (k, rep.coverage["observable_fraction"])
+        regions = {r: x["rmse"] for r, x in rep.errors["maps_observable"][k]["regions"].items()
+                   if r != "coated" and x["texels"] > 0}
+        assert regions and max(regions.values()) < 1e-3, (k, regions)
+    # the coat is one value: written as constant maps, not allocated per texel, no confidence map
+    assert set(rep.skipped["parameters_known"]) == {"coat_ior", "coat_roughness"}
+    assert "coat_ior" not in rep.coverage["unobservable"]
+    ior = read_exr(tmp_path / "o" / "coat_ior.exr")
+    assert float((ior - 1.5).abs().max()) < 1e-4
+    assert not (tmp_path / "o" / "confidence_coat_ior.exr").exists()
+
+
+def test_known_parameters(tmp_path, lambert_ds):
+    root = tmp_path / "layered"
+    make_synthetic(small_scene("gotanda2012-layered", image_size=48, texture_size=8, n_views=3, sampling="nearest",
+                               uniform={"coat_roughness": 0.1}), root)
+    rep = reconstruct(root, model="gotanda2012-layered", out_dir=tmp_path / "k", progress=False,
+                      known={"coat_ior": 1.5, "coat_roughness": 0.1})
+    assert rep.skipped["parameters_known"] == {"coat_ior": [1.5], "coat_roughness": [0.1]}
+    assert "scalars" not in rep.fit          # nothing left to fit as a scalar
+    assert rep.errors["known"]["coat_ior"]["rmse"] < 1e-6 and rep.errors["known"]["coat_roughness"]["rmse"] < 1e-6
+    assert "coat_roughness" not in rep.errors["maps"]
+    with pytest.raises(ReconstructionError, match="belong to no model"):
+        reconstruct(lambert_ds, model="lambert", out_dir=tmp_path / "x", progress=False, known={"coat_ior": 1.5})
+    with pytest.raises(ReconstructionError, match="outside its range"):
+        reconstruct(root, model="gotanda2012-layered", out_dir=tmp_path / "x", progress=False, known={"coat_ior": 9})
+    with pytest.raises(ReconstructionError, match="scalars"):
+        reconstruct(root, model="gotanda2012-layered", out_dir=tmp_path / "x", progress=False, scalars="coat_ior")
+    assert not (tmp_path / "x").exists()
 
 
 def test_fixed_lights_resolve_what_the_flash_rig_cannot(tmp_path):
