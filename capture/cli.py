@@ -94,7 +94,7 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
                    help="fast: per-texel Gauss-Newton/LM with closed-form linear parameters; adam: first order")
     p.add_argument("--loss", choices=("l2", "huber", "l1"), default="l2", help="robust loss (huber/l1 for highlights)")
     p.add_argument("--tex", type=int, default=None, help="texture size of the recovered maps (default: the dataset's)")
-    p.add_argument("--known", action="append", type=_known_value, metavar="NAME=VALUE[,VALUE,VALUE]",
+    p.add_argument("--known", action="append", type=parse_known_value, metavar="NAME=VALUE[,VALUE,VALUE]",
                    help="hold a parameter at a known value instead of fitting it, e.g. --known coat_ior=1.5 "
                         "(repeatable; one value or one per channel)")
     p.add_argument("--scalars", default=None, metavar="NAME,NAME",
@@ -103,7 +103,8 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
 
 
-def _known_value(text: str) -> tuple[str, list[float]]:
+def parse_known_value(text: str) -> tuple[str, list[float]]:
+    """``"NAME=V"`` or ``"NAME=V1,V2,V3"`` → ``(NAME, [values])`` (argparse type of ``--known``)."""
     name, sep, values = text.partition("=")
     try:
         nums = [float(x) for x in values.split(",")]

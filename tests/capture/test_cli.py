@@ -42,13 +42,13 @@ def test_small_demo_runs_end_to_end(tmp_path, capsys):
 def test_known_values_are_parsed_and_bad_ones_named(tmp_path, capsys):
     import argparse
 
-    from capture.cli import _known_value
+    from capture.cli import parse_known_value
 
-    assert _known_value("coat_ior=1.5") == ("coat_ior", [1.5])
-    assert _known_value("absorption=0.1,0.2,0.3") == ("absorption", [0.1, 0.2, 0.3])
+    assert parse_known_value("coat_ior=1.5") == ("coat_ior", [1.5])
+    assert parse_known_value("absorption=0.1,0.2,0.3") == ("absorption", [0.1, 0.2, 0.3])
     for bad in ("coat_ior", "coat_ior=", "=1.5", "coat_ior=high"):
         with pytest.raises(argparse.ArgumentTypeError, match="NAME=VALUE"):
-            _known_value(bad)
+            parse_known_value(bad)
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tmp_path / "d"), "--out", str(tmp_path / "o"), "--known", "coat_ior"])
     assert "NAME=VALUE" in capsys.readouterr().err
