@@ -42,6 +42,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -1033,6 +1034,19 @@ class _SharingPrior:
         return out
 
 
+def _sampling_operator(idx: Tensor, weight: Tensor, T: int) -> tuple[Tensor, Tensor]:
+    """Sparse CSR matrices ``[S, T]`` and ``[T, S]`` of the sampling footprint: row s holds sample s's
+    weights at its texels ``idx [S, K]`` (``weight [S, K]``); the transpose is built directly, not transposed."""
+    S, K = idx.shape
+    rows = torch.arange(S, device=idx.device).repeat_interleave(K)
+    cols, vals = idx.reshape(-1), weight.reshape(-1)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        fwd = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (S, T)).coalesce().to_sparse_csr()
+        bwd = torch.sparse_coo_tensor(torch.stack([cols, rows]), vals, (T, S)).coalesce().to_sparse_csr()
+    return fwd, bwd
+
+
 def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor, groups, *, loss: str, delta: float,
                  iterations: int = 4, cg_iterations: int = 25, sampling: str = "bilinear",
                  sharing: float = 0.0, sharing_params: Sequence[str] | None = None, sharing_delta: float = 0.3,
@@ -1071,19 +1085,22 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     else:
         idx, bw = obs.texel[:, None], torch.ones(obs.n_samples, 1, dtype=ACC, device=obs.device)
     T, P = theta.shape
-    K = idx.shape[1]
     y = obs.radiance.to(ACC)
     n_res = float(3 * obs.weight.to(ACC).sum())
     eye = torch.eye(P, dtype=ACC, device=theta.device)
 
+    # the sampling operator as sparse CSR matrices (K non-zeros per row): per-sample values are
+    # S_op @ x, the transpose scatters back. Measured on the default scene (204 000 samples, 65 536
+    # texels, P = 7, 2 threads): 4.9 ms and 2.6 ms against 112 ms and 28 ms for gather + weighted sum
+    # and K index_adds
+    S_op, S_t = _sampling_operator(idx, bw, T)
+    S_sq_t = _sampling_operator(idx, bw.square(), T)[1]
+
     def gather(x):                                  # [T, P] → per-sample [S, P]
-        return (x[idx] * bw[..., None]).sum(-2)
+        return S_op @ x
 
     def scatter(g):                                 # per-sample [S, P] → [T, P]
-        out = torch.zeros(T, g.shape[-1], dtype=ACC, device=g.device)
-        for k in range(K):
-            out.index_add_(0, idx[:, k], g * bw[:, k:k + 1])
-        return out
+        return S_t @ g
 
     def canon_of(th):
         prm = layout.unpack(th)
@@ -1128,9 +1145,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             w = obs.weight.to(ACC)[:, None] * _irls(r, loss, delta)                    # [S, 3]
             g = scatter(torch.einsum("scp,sc->sp", J, w * r)) * dp                      # JᵀWr in θ
             JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)
-            B = torch.zeros(T, P, P, dtype=ACC, device=theta.device)
-            for k in range(K):
-                B.index_add_(0, idx[:, k], JWJ * bw[:, k].square()[:, None, None])
+            B = (S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)                 # Σ_s w_sk² J_sᵀWJ_s
             del JWJ
             if prior is not None:
                 if it == 0:

@@ -191,3 +191,23 @@ def test_layered_metal_under_a_coat_converges_despite_a_dead_parameter():
     for k in ("albedo", "f0", "roughness"):
         assert (res.raw[k].double() - gt[k]).abs().max() < 1e-4, (k, (res.raw[k].double() - gt[k]).abs().max())
     assert res.info["grid_starts"] == {"f0": [0.1, 0.9]}
+
+
+def test_sampling_operator_matches_gather_and_scatter():
+    # the CSR sampling operator of the joint refinement against the explicit weighted gather / index_add,
+    # with repeated texels inside a sample's footprint (as at a clamped map border)
+    from capture.solvers import _sampling_operator
+
+    g = torch.Generator().manual_seed(5)
+    S, T, K, P = 50, 12, 4, 3
+    idx = torch.randint(T, (S, K), generator=g)
+    idx[0] = 7                                                    # all four weights on one texel
+    w = torch.rand(S, K, generator=g, dtype=torch.float64)
+    x = torch.randn(T, P, generator=g, dtype=torch.float64)
+    y = torch.randn(S, P, generator=g, dtype=torch.float64)
+    fwd, bwd = _sampling_operator(idx, w, T)
+    torch.testing.assert_close(fwd @ x, (x[idx] * w[..., None]).sum(1), rtol=0, atol=1e-14)
+    ref = torch.zeros(T, P, dtype=torch.float64)
+    for k in range(K):
+        ref.index_add_(0, idx[:, k], y * w[:, k:k + 1])
+    torch.testing.assert_close(bwd @ y, ref, rtol=0, atol=1e-13)
