@@ -215,8 +215,6 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         _groups,
         _linear_solve,
         _separable,
-        from_canonical,
-        pull_push,
         std_threshold,
     )
 
@@ -296,25 +294,42 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         # texels read only through a neighbour's bilinear footprint have no closed-form albedo of their own:
         # pull-push from the texels of the same material that have one (of any material where none has;
         # measured on the default scene: albedo RMSE 0.0173 → 0.0151 against any-material pull-push)
-        borrowed = observed & ~own
-        if bool(borrowed.any()) and bool(own.any()):
-            for s in per_texel:
-                cols = torch.tensor(layout.cols(s.name), device=dev)
-                vals = layout.unpack(theta)[s.name].reshape(H, W, -1)
-                filled = pull_push(vals, own.reshape(H, W)).reshape(T, -1)
-                for k in range(K):
-                    src = own & (label == k)
-                    if bool(src.any()) and bool((borrowed & (label == k)).any()):
-                        fk = pull_push(vals, src.reshape(H, W)).reshape(T, -1)
-                        filled = torch.where((label == k)[:, None], fk, filled)
-                rows = borrowed.nonzero()[:, 0]
-                theta[rows[:, None], cols] = from_canonical(s, filled[rows])
+        theta = borrow_albedo(layout, theta, torch.where(observed, label, torch.full_like(label, -1)), own, H, W)
     lab = torch.where(observed, label, torch.full_like(label, -1))
     mats = layout.unpack(mat)
     info.update(materials=[{s.name: mats[s.name][k].tolist() for s in shared} for k in range(K)], labels=lab,
                 decided_at=decided, texels_per_material=torch.bincount(label[observed], minlength=K).tolist(),
                 share_s=time.perf_counter() - t0)
     return theta, info
+
+
+def borrow_albedo(layout, theta: Tensor, label: Tensor, own: Tensor, H: int, W: int) -> Tensor:
+    """θ with the per-texel (albedo) parameters of the texels read only through a neighbour's bilinear
+    footprint (``label ≥ 0`` and not ``own``: no sample of their own) replaced by a pull-push fill from
+    the texels of the same material that have samples (of any material where none has). Returns a new θ.
+
+    Their own data are a few percent of a neighbour's sample, so a neighbour's error δ moves them by
+    ~δ / weight; measured on the default scene: albedo RMSE on all observed texels 0.0173 → 0.0151
+    against a pull-push from texels of any material."""
+    from .solvers import from_canonical, pull_push
+
+    borrowed = (label >= 0) & ~own
+    theta = theta.clone()
+    if not bool(borrowed.any()) or not bool(own.any()):
+        return theta
+    T = theta.shape[0]
+    for s in (s_ for s_ in layout.specs if s_.name == "albedo" and s_.linear):
+        cols = torch.tensor(layout.cols(s.name), device=theta.device)
+        vals = layout.unpack(theta)[s.name].reshape(H, W, -1)
+        filled = pull_push(vals, own.reshape(H, W)).reshape(T, -1)
+        for k in label[borrowed].unique().tolist():
+            src = own & (label == k)
+            if bool(src.any()):
+                fk = pull_push(vals, src.reshape(H, W)).reshape(T, -1)
+                filled = torch.where((label == k)[:, None], fk, filled)
+        rows = borrowed.nonzero()[:, 0]
+        theta[rows[:, None], cols] = from_canonical(s, filled[rows])
+    return theta
 
 
 def _from_canon(spec, x: Tensor) -> Tensor:
