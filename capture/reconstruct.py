@@ -227,7 +227,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             layered material measured once for the whole object (the issue's "coat η and roughness
             as known scalars"). Each name must belong to the model (with ``"auto"``: to some
             candidate; candidates without it fit as usual). Known maps are written as constant maps
-            and listed in the report (``skipped.parameters_known``), not counted as fitted.
+            and listed in the report (``skipped.parameters_per_object``, with the fitted scalars), not
+            allocated per texel.
         scalars: parameters fitted as *one* value for the whole object rather than per texel (default
             :data:`SCALARS`: the coat's η and roughness; names the model lacks are ignored): a per-texel
             fit, then each one's median over the texels where it is observable (``fit.scalars`` in the
@@ -389,7 +390,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     unused = sorted(set(materials.CANONICAL) - set(mdl.param_names) - set(known_used))
     report.skipped["parameters_not_allocated"] = unused
     if known_used:
-        report.skipped["parameters_known"] = {k: t_.tolist() for k, t_ in known_used.items()}
+        report.skipped["parameters_per_object"] = {k: t_.tolist() for k, t_ in known_used.items()}
     H, W = obs.map_size
     known_maps = {k: t_.to(torch.float32).expand(H, W, t_.numel()) for k, t_ in known_used.items()}
     observed = fit.observed
@@ -522,6 +523,13 @@ def _summary(r: Report) -> str:
              + ", ".join(f"{k} {v}" for k, v in r.drops.items() if v),
              f"texels observed {r.coverage.get('observed')} / {r.coverage.get('texels')}; unobservable "
              + ", ".join(f"{k} {v}" for k, v in r.coverage.get("unobservable", {}).items())]
+    per_object = r.skipped.get("parameters_per_object", {})
+    if per_object:
+        fitted = r.fit.get("scalars", {})
+        lines.append("one value per object: " + ", ".join(
+            f"{k} {', '.join(f'{x:.4g}' for x in v)} "
+            + (f"(fitted: median of {fitted[k]['from_texels']} texels)" if k in fitted else "(given)")
+            for k, v in per_object.items()))
     if r.selection:
         lines.append("auto: " + " → ".join(f"{s['model']} (held-out RMSE {s['heldout_rmse']:.4g})"
                                            for s in r.selection))

@@ -22,8 +22,8 @@ albedo, for exactly the flash-light setting), :func:`share_materials`
    candidate, albedo held) and repeats 2–3 ``rounds`` times.
 
 Anchors keep their own fit. Measured on the default scene (docs/reconstruction.md, "Reflectance
-sharing"): RMSE on all observed texels albedo / f0 / roughness 0.135 / 0.210 / 0.178 → 0.015 / 0.016 /
-0.056 after the joint refinement; this stage takes 5 s of the 26.
+sharing" and "Session 4"): RMSE on all observed texels albedo / f0 / roughness 0.0805 / 0.1963 / 0.1892
+→ 0.0161 / 0.0159 / 0.0532 after the joint refinement; this stage takes ~6 s of the 27 (2 threads).
 
 The result initialises the joint refinement, whose edge-preserving prior
 (:func:`capture.solvers.refine_joint` ``sharing=``) then lets well-observed texels depart from their

@@ -783,8 +783,9 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             and the joint refinement adds the edge-preserving prior of weight ``sharing`` between
             neighbours (:func:`refine_joint`). None = on whenever the joint refinement runs (bilinear
             sampling); it then replaces ``fill_before_joint``. Measured on the default scene (docs/
-            reconstruction.md): RMSE on all observed texels albedo / f0 / roughness 0.015 / 0.016 / 0.056
-            against 0.135 / 0.210 / 0.178 without, on observable texels 0.0007 / 0.0044 / 0.0020;
+            reconstruction.md, 3 joint steps): RMSE on all observed texels albedo / f0 / roughness 0.0161 /
+            0.0159 / 0.0532 against 0.0805 / 0.1963 / 0.1892 without, on observable texels 0.0005 / 0.0017 /
+            0.0018 against 0.0016 / 0.0107 / 0.0146;
             ``candidates`` 8 against 10: f0 0.021 → 0.016 here, 0.054 → 0.019 with fixed lights.
         reproject: every this many iterations re-solve the linear parameters in closed form at the
             current nonlinear ones (a variable-projection step, 1 + #linear evaluations); 0 = never.

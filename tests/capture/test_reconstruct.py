@@ -116,11 +116,12 @@ def test_layered_family_with_coat_scalars(tmp_path):
                    if r != "coated" and x["texels"] > 0}
         assert regions and max(regions.values()) < 1e-3, (k, regions)
     # the coat is one value: written as constant maps, not allocated per texel, no confidence map
-    assert set(rep.skipped["parameters_known"]) == {"coat_ior", "coat_roughness"}
+    assert set(rep.skipped["parameters_per_object"]) == {"coat_ior", "coat_roughness"}
     assert "coat_ior" not in rep.coverage["unobservable"]
     ior = read_exr(tmp_path / "o" / "coat_ior.exr")
     assert float((ior - 1.5).abs().max()) < 1e-4
     assert not (tmp_path / "o" / "confidence_coat_ior.exr").exists()
+    assert "one value per object: coat_ior 1.5 (fitted: median of" in (tmp_path / "o" / "summary.txt").read_text()
 
 
 def test_known_parameters(tmp_path, lambert_ds):
@@ -129,10 +130,11 @@ def test_known_parameters(tmp_path, lambert_ds):
                                uniform={"coat_roughness": 0.1}), root)
     rep = reconstruct(root, model="gotanda2012-layered", out_dir=tmp_path / "k", progress=False,
                       known={"coat_ior": 1.5, "coat_roughness": 0.1})
-    assert rep.skipped["parameters_known"] == {"coat_ior": [1.5], "coat_roughness": [0.1]}
+    assert rep.skipped["parameters_per_object"] == {"coat_ior": [1.5], "coat_roughness": [0.1]}
     assert "scalars" not in rep.fit          # nothing left to fit as a scalar
     assert rep.errors["known"]["coat_ior"]["rmse"] < 1e-6 and rep.errors["known"]["coat_roughness"]["rmse"] < 1e-6
     assert "coat_roughness" not in rep.errors["maps"]
+    assert "coat_roughness 0.1 (given)" in (tmp_path / "k" / "summary.txt").read_text()
     with pytest.raises(ReconstructionError, match="belong to no model"):
         reconstruct(lambert_ds, model="lambert", out_dir=tmp_path / "x", progress=False, known={"coat_ior": 1.5})
     with pytest.raises(ReconstructionError, match="outside its range"):
