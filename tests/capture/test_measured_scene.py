@@ -126,3 +126,15 @@ def test_capture_of_the_default_measured_scene_regression(tmp_path):
     cap = torch.tensor(lam["regions"]["red-fabric2"]["params"]["albedo"], dtype=torch.float64)
     torch.testing.assert_close(cap, fit.params["albedo"], rtol=0.08, atol=0.0)
     assert lam["regions"]["red-fabric2"]["observed_texels"] > 600
+
+
+@pytest.mark.slow
+def test_auto_picks_the_specular_model_on_the_measured_scene(tmp_path):
+    """auto judges by the held-out mean absolute error (session 4): on its own split of the 9 training views
+    measured lambert 0.0423, ggx-lambert 0.0398 (−6 %), gotanda2012-layered 0.0439 → ggx-lambert, 28.8 dB on
+    the benchmark's held-out views. With the RMSE (highlight pixels dominate) it kept lambert (17.8 dB). The
+    6 % gain is near the 5 % threshold: a failure here means the selection changed, to be looked at."""
+    (row,) = M.capture_benchmark(M.measured_scene(), models=("auto",), work_dir=tmp_path, fit_reference=False)
+    assert row["error"] is None
+    assert row["chosen"] == "ggx-lambert", row["chosen"]
+    assert row["psnr"] > 25.0
