@@ -64,7 +64,7 @@ LOSSES = ("l2", "huber", "l1")
 _EPS_BOUND = 1e-6
 #: Solver bookkeeping dtype (θ, normal equations, costs); the model is evaluated in the observations' dtype.
 ACC = torch.float64
-#: Largest LM step per iteration in θ units (logit/softplus), see solve_fast.
+#: Largest LM step per iteration and θ component (logit/softplus units), see solve_fast.
 MAX_STEP = 1.0
 
 
@@ -623,7 +623,7 @@ def _start_values(spec: ParamSpec) -> list[float]:
     default, or for a bounded RGB one (e.g. f0 where it is not linear: Gotanda's diffuse·(1 − f0), the
     coat-relative f0 of the layered model) 10 % and 90 % of its range. A metal's f0 is a different
     basin from a dielectric's, which LM from 0.04 did not reach (gold under a coat: cost 20 from one
-    start, 1e-13 from both), and f0 = 0.04 under a coat of η 1.5 is a stationary point (the bottom is
+    start, 3e-21 from both), and f0 = 0.04 under a coat of η 1.5 is a stationary point (the bottom is
     index-matched: relative f0 = 0 with zero derivative), so the default itself is not a start."""
     if spec.channels == 3 and _bounded(spec) and not spec.linear:
         return [spec.low + 0.1 * (spec.high - spec.low), spec.low + 0.9 * (spec.high - spec.low)]
@@ -891,9 +891,11 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                 rhs = torch.where(live[:, None], rhs, torch.zeros_like(rhs))
                 step, ok = torch.linalg.solve_ex(A, rhs)
                 step = torch.where((ok == 0)[:, None] & torch.isfinite(step), step, torch.zeros_like(step))
-                # trust region in θ: a step of more than MAX_STEP (in logit/softplus units) is scaled
-                # down, so that a poor linearisation cannot throw a parameter into the flat tail of
-                # its sigmoid (dp/dθ ≈ 0) from where it would never return
+                # trust region in θ: each component of the step is clamped to ±MAX_STEP (logit/softplus
+                # units), so that a poor linearisation cannot throw a parameter into the flat tail of
+                # its sigmoid (dp/dθ ≈ 0) from where it would never return. Per component, not by
+                # scaling the whole step: a near-null column (absorption on its softplus floor) has an
+                # enormous damped step, and scaling by it froze every other parameter (session 4)
                 step = step.clamp(-MAX_STEP, MAX_STEP)
                 trial = theta + step
                 pred_t = obs.predict(model, layout.unpack(trial[obs.texel].to(obs.dtype))) if sub is obs else None
@@ -1071,7 +1073,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     applies ``J_s``, ``J_sᵀW`` and scatters back with the weights; the preconditioner is the exact
     per-texel P×P block). A step is kept when it lowers the total cost, else λ grows ×4 and the
     step is re-solved. Variables are θ (the sigmoid/softplus parameterisation), with the same
-    trust region |Δθ| ≤ :data:`MAX_STEP` per texel as :func:`solve_fast`.
+    trust region |Δθ_i| ≤ :data:`MAX_STEP` per component as :func:`solve_fast`.
 
     ``sharing > 0`` adds the edge-preserving prior of :class:`_SharingPrior` between 4-neighbour
     observed texels on ``sharing_params`` (default: every parameter but the albedo): Huber on the
