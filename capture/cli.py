@@ -79,10 +79,8 @@ def _add_synth_args(p: argparse.ArgumentParser) -> None:
 def _cmd_reconstruct(args) -> int:
     from capture.reconstruct import reconstruct
 
-    extra = {} if args.scalars is None else {"scalars": tuple(n for n in args.scalars.split(",") if n)}
     report = reconstruct(args.dataset, model=args.model, out_dir=args.out, force=args.force,
-                         solver=args.solver, loss=args.loss, texture_size=args.tex, known=dict(args.known or []),
-                         **extra)
+                         solver=args.solver, loss=args.loss, texture_size=args.tex, **known_options(args))
     summary = Path(args.out) / "summary.txt"
     print(summary.read_text() if summary.exists() else report)
     return 0
@@ -94,13 +92,26 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
                    help="fast: per-texel Gauss-Newton/LM with closed-form linear parameters; adam: first order")
     p.add_argument("--loss", choices=("l2", "huber", "l1"), default="l2", help="robust loss (huber/l1 for highlights)")
     p.add_argument("--tex", type=int, default=None, help="texture size of the recovered maps (default: the dataset's)")
+    add_known_args(p)
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+
+
+def add_known_args(p: argparse.ArgumentParser) -> None:
+    """``--known NAME=VALUE`` (repeatable) and ``--scalars NAME,NAME``; :func:`known_options` reads them."""
     p.add_argument("--known", action="append", type=parse_known_value, metavar="NAME=VALUE[,VALUE,VALUE]",
                    help="hold a parameter at a known value instead of fitting it, e.g. --known coat_ior=1.5 "
                         "(repeatable; one value or one per channel)")
     p.add_argument("--scalars", default=None, metavar="NAME,NAME",
                    help="parameters fitted as one value for the whole object (default: coat_ior,coat_roughness; "
                         "'' = all per texel)")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+
+
+def known_options(args) -> dict:
+    """The ``known`` / ``scalars`` keyword arguments of :func:`capture.reconstruct.reconstruct` from parsed args."""
+    out = {"known": dict(args.known or [])}
+    if args.scalars is not None:
+        out["scalars"] = tuple(n for n in args.scalars.split(",") if n)
+    return out
 
 
 def parse_known_value(text: str) -> tuple[str, list[float]]:

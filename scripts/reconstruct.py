@@ -12,7 +12,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from capture.cli import parse_known_value  # noqa: E402  (the NAME=VALUE parser of `shadecap reconstruct`)
+from capture.cli import add_known_args, known_options  # noqa: E402  (shared with `shadecap reconstruct`)
 
 
 def main(argv=None) -> int:
@@ -31,10 +31,7 @@ def main(argv=None) -> int:
                     help="how samples read the maps (default: as the dataset's ground truth, else bilinear)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (1 is faster on a loaded machine)")
     ap.add_argument("--float64", action="store_true", help="evaluate the model in float64")
-    ap.add_argument("--known", action="append", type=parse_known_value, metavar="NAME=VALUE[,VALUE,VALUE]",
-                    help="hold a parameter at a known value, e.g. --known coat_ior=1.5 (repeatable)")
-    ap.add_argument("--scalars", default=None, metavar="NAME,NAME",
-                    help="parameters fitted as one value per object (default coat_ior,coat_roughness; '' = none)")
+    add_known_args(ap)
     ap.add_argument("--force", action="store_true")
     a = ap.parse_args(argv)
     import torch
@@ -43,11 +40,9 @@ def main(argv=None) -> int:
 
     opts = {k: v for k, v in (("iterations", a.iterations), ("grid", a.grid), ("schedule", a.schedule),
                               ("smoothness", a.smoothness)) if v is not None}
-    if a.scalars is not None:
-        opts["scalars"] = tuple(n for n in a.scalars.split(",") if n)
     reconstruct(a.dataset, model=a.model, out_dir=a.out, force=a.force, solver=a.solver, loss=a.loss,
                 texture_size=a.tex, dtype=torch.float64 if a.float64 else torch.float32, sampling=a.sampling,
-                threads=a.threads, known=dict(a.known or []), **opts)
+                threads=a.threads, **known_options(a), **opts)
     print((Path(a.out) / "summary.txt").read_text())
     return 0
 
