@@ -1046,15 +1046,17 @@ class _SharingPrior:
         return out
 
 
-def _sampling_operator(idx: Tensor, weight: Tensor, T: int) -> tuple[Tensor, Tensor]:
-    """Sparse CSR matrices ``[S, T]`` and ``[T, S]`` of the sampling footprint: row s holds sample s's
-    weights at its texels ``idx [S, K]`` (``weight [S, K]``); the transpose is built directly, not transposed."""
+def _sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True) -> tuple[Tensor | None, Tensor]:
+    """Sparse CSR matrices ``[S, T]`` (None unless ``forward``) and ``[T, S]`` of the sampling footprint: row s
+    holds sample s's weights at its texels ``idx [S, K]`` (``weight [S, K]``); the transpose is built
+    directly, not transposed."""
     S, K = idx.shape
     rows = torch.arange(S, device=idx.device).repeat_interleave(K)
     cols, vals = idx.reshape(-1), weight.reshape(-1)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
-        fwd = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (S, T)).coalesce().to_sparse_csr()
+        fwd = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (S, T)).coalesce().to_sparse_csr() \
+            if forward else None
         bwd = torch.sparse_coo_tensor(torch.stack([cols, rows]), vals, (T, S)).coalesce().to_sparse_csr()
     return fwd, bwd
 
@@ -1106,7 +1108,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     # texels, P = 7, 2 threads): 4.9 ms and 2.6 ms against 112 ms and 28 ms for gather + weighted sum
     # and K index_adds
     S_op, S_t = _sampling_operator(idx, bw, T)
-    S_sq_t = _sampling_operator(idx, bw.square(), T)[1]
+    S_sq_t = _sampling_operator(idx, bw.square(), T, forward=False)[1]
 
     def gather(x):                                  # [T, P] → per-sample [S, P]
         return S_op @ x
