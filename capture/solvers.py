@@ -442,17 +442,19 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
         med = float(y.abs().mean(-1).median().clamp_min(1e-12))
         sig2 = (rel * torch.maximum(y.abs(), torch.full_like(y, floor * med))).square()
         w = obs.weight.to(ACC)[:, None] * _irls(r, loss, delta) / sig2                  # [S, 3]
-        K = idx.shape[1]
         JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)                                # [S, P, P]
-        A = torch.zeros(T, P, P, dtype=ACC, device=y.device)
-        chi = torch.zeros(T, dtype=ACC, device=y.device)
-        nres = torch.zeros(T, dtype=ACC, device=y.device)
         chi_s = (w * r * r).sum(-1)
-        for k in range(K):
-            wk = bw[:, k]
-            A.index_add_(0, idx[:, k], JWJ * wk.square()[:, None, None])
-            chi.index_add_(0, idx[:, k], chi_s * wk)
-            nres.index_add_(0, idx[:, k], 3 * wk * (obs.weight.to(ACC) > 0))
+        per_sample = torch.stack([chi_s, 3.0 * (obs.weight.to(ACC) > 0)], -1)         # [S, 2]
+        if idx.shape[1] == 1:
+            A = torch.zeros(T, P, P, dtype=ACC, device=y.device).index_add_(0, idx[:, 0], JWJ)
+            chi, nres = torch.zeros(T, 2, dtype=ACC, device=y.device).index_add_(0, idx[:, 0], per_sample).unbind(-1)
+        else:
+            # the footprint's transposed sampling operators (as in refine_joint): Σ_s w_sk² J_sᵀWJ_s per texel,
+            # and the weight-shared χ² and residual counts
+            S_t = _sampling_operator(idx, bw, T, forward=False)[1]
+            S_sq_t = _sampling_operator(idx, bw.square(), T, forward=False)[1]
+            A = (S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)
+            chi, nres = (S_t @ per_sample).unbind(-1)
         observed = nres > 0
         eye = torch.eye(P, dtype=ACC, device=y.device)
         dmax = torch.diagonal(A, dim1=-2, dim2=-1).amax(-1).clamp_min(1e-30)
