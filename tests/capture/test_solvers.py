@@ -75,6 +75,36 @@ def test_posterior_std_flags_the_albedo_f0_trade_off():
     assert all(med[16][k] < 0.5 * med[4][k] for k in med[4])
 
 
+def test_posterior_std_with_a_bilinear_footprint():
+    # the footprint path (sparse transposed sampling operators) against the nearest-texel one on the same
+    # samples: a footprint of weight 1 on the sample's own texel and 0 on three random others reads the
+    # same, so the stds agree; the weight split 0.5 / 0.5 over the same texel halves Σ w², so every
+    # variance doubles (std × √2) while χ² and the residual count (Σ w) stay as they are
+    from dataclasses import replace
+
+    from capture.solvers import Layout, _groups, posterior_std
+
+    model = _ggx_lambert()
+    lay = Layout.of(model)
+    gt = _maps(4, 4)
+    obs = synthetic_observations(model, gt, samples_per_texel=8)
+    canon = torch.cat([gt[s.name].reshape(16, -1) for s in lay.specs], -1)
+    groups = _groups(model, lay, torch.float64)
+    near, observed, _ = posterior_std(model, lay, obs, canon, groups)
+    g = torch.Generator().manual_seed(5)
+    S = obs.n_samples
+    others = torch.randint(16, (S, 3), generator=g)
+    one = replace(obs, bilinear_index=torch.cat([obs.texel[:, None], others], 1),
+                  bilinear_weight=torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(S, 4).clone())
+    std1, observed1, _ = posterior_std(model, lay, one, canon, groups, sampling="bilinear")
+    assert observed1.equal(observed)
+    torch.testing.assert_close(std1, near, rtol=1e-6, atol=0)
+    half = replace(obs, bilinear_index=obs.texel[:, None].expand(S, 2).clone(),
+                   bilinear_weight=torch.full((S, 2), 0.5, dtype=torch.float64))
+    std2, _, _ = posterior_std(model, lay, half, canon, groups, sampling="bilinear")
+    torch.testing.assert_close(std2, near * 2 ** 0.5, rtol=1e-6, atol=0)
+
+
 def test_lambert_closed_form_is_exact_in_one_solve():
     model = materials.get("lambert")
     g = torch.Generator().manual_seed(3)
