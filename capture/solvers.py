@@ -733,7 +733,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                observable_std: float | Mapping[str, float] | None = None, noise=NOISE, reproject: int = 0,
                sampling: str = "nearest", joint_iterations: int = 3, cg_iterations: int = 25,
                fill_before_joint: bool = True, share: bool | None = None, candidates: int = 8, sharing: float = 1.0,
-               progress: Callable[[str, int, float], None] | None = None) -> FitResult:
+               sharing_albedo: bool = True, progress: Callable[[str, int, float], None] | None = None) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
     Objective: ``Σ_s weight_s Σ_c ρ(y_sc − L_sc)`` with nearest-texel sampling (each sample reads
@@ -782,13 +782,20 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         share: reflectance sharing before the joint refinement (:func:`capture.sharing.share_materials`):
             texels whose shared parameters (all but the albedo) their own samples do not determine take
             those of one of ``candidates`` materials clustered from the texels where they are determined,
-            and the joint refinement adds the edge-preserving prior of weight ``sharing`` between
-            neighbours (:func:`refine_joint`). None = on whenever the joint refinement runs (bilinear
+            and the joint refinement adds the edge-preserving prior of weight ``sharing`` on every parameter
+            between neighbours (:func:`refine_joint`). None = on whenever the joint refinement runs (bilinear
             sampling); it then replaces ``fill_before_joint``. Measured on the default scene (docs/
             reconstruction.md, 3 joint steps): RMSE on all observed texels albedo / f0 / roughness 0.0161 /
             0.0159 / 0.0532 against 0.0805 / 0.1963 / 0.1892 without, on observable texels 0.0005 / 0.0017 /
             0.0018 against 0.0016 / 0.0107 / 0.0146;
             ``candidates`` 8 against 10: f0 0.021 → 0.016 here, 0.054 → 0.019 with fixed lights.
+        sharing_albedo: the joint refinement's prior links neighbouring texels' albedo too (default; see
+            :func:`refine_joint` for the measurements). Where the photos determine a texel's albedo the prior's
+            linear tail lets it jump; where they barely do (texels read only through a neighbour's bilinear
+            footprint, the grazing band) it takes a neighbour's. False keeps such texels nearer their own weak
+            data: better for a texture finer than the photos resolve (small scene with 1.3-texel checker squares:
+            all-texel albedo RMSE 0.0191 against 0.0288), worse on the default scene (0.0161 against 0.0106)
+            and with shot noise (0.0549 against 0.0241).
         reproject: every this many iterations re-solve the linear parameters in closed form at the
             current nonlinear ones (a variable-projection step, 1 + #linear evaluations); 0 = never.
         progress: callback ``(stage, iteration, cost)``.
@@ -979,7 +986,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     if joint:
         theta, jinfo = refine_joint(model, obs, layout, theta, groups, loss=loss, delta=delta,
                                     iterations=joint_iterations, cg_iterations=cg_iterations,
-                                    sharing=sharing if share else 0.0, progress=progress)
+                                    sharing=sharing if share else 0.0, progress=progress,
+                                    sharing_params=None if sharing_albedo else _shared_default(layout))
         info.update(jinfo)
         history.append(jinfo["joint_history"][-1])
     return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,
@@ -1000,6 +1008,12 @@ class _SharingPrior:
 
     def __init__(self, layout: Layout, names: Sequence[str], H: int, W: int, observed: Tensor, delta: float):
         self.cols = [c for n in names for c in layout.cols(n)]
+        # the columns whose data curvature sets μ (refine_joint): those of the material parameters when the
+        # prior has any. The albedo's curvature is larger (a texel's colour is seen wherever the texel is),
+        # and calibrating on it too raised μ for every parameter (default scene: f0 0.0171 against 0.0161)
+        material = set(_shared_default(layout))
+        col_names = [n for n in names for _ in layout.cols(n)]
+        self.calibrate = [i for i, n in enumerate(col_names) if n in material] or list(range(len(col_names)))
         dev = observed.device
         spec = {s.name: s for s in layout.specs}
         self.thr = torch.tensor([std_threshold(spec[n]) for n in names
@@ -1080,7 +1094,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     trust region |Δθ_i| ≤ :data:`MAX_STEP` per component as :func:`solve_fast`.
 
     ``sharing > 0`` adds the edge-preserving prior of :class:`_SharingPrior` between 4-neighbour
-    observed texels on ``sharing_params`` (default: every parameter but the albedo): Huber on the
+    observed texels on ``sharing_params`` (default: every parameter, the albedo included): Huber on the
     differences in units of the observability thresholds, quadratic below ``sharing_delta``, with
     weight μ = ``sharing`` × the median data curvature of a one-threshold change (so ``sharing`` is
     dimensionless). It enters the normal equations through IRLS weights, the matrix-free product and
@@ -1088,7 +1102,19 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     default scene after :func:`capture.sharing.share_materials` (2 outer iterations): RMSE on all
     observed texels albedo / f0 / roughness 0.026 / 0.031 / 0.079 without the prior, 0.017 / 0.024 /
     0.058 with μ = 1, δ = 1, 0.017 / 0.021 / 0.056 with δ = 0.3 (the default; 10 candidates); μ = 0.3 or 3 change
-    them by < 0.003.
+    them by < 0.003. The albedo is in the prior's default set since session 5 (before: every parameter but
+    the albedo, which varies per texel by design): where the photos determine it the prior's linear tail lets
+    it jump at the checker's edges, where they do not — texels read only through a neighbour's bilinear
+    footprint, the grazing band — it interpolates with the edges kept. μ is still calibrated on the material
+    parameters (the albedo's curvature would raise it for all: f0 0.0171 instead of 0.0161 below). Measured,
+    3 outer iterations, RMSE on all observed texels albedo / f0 / roughness (observable texels): default scene
+    0.0161 / 0.0159 / 0.0532 → 0.0106 / 0.0161 / 0.0523 (0.0005 / 0.0017 / 0.0018 unchanged); with shot noise
+    (full well 3000 e⁻) 0.0549 / 0.151 / 0.150 → 0.0241 / 0.150 / 0.149 (albedo 0.0053 → 0.0045); fixed-light
+    rig 0.0193 / 0.0180 / 0.1095 → 0.0164 / 0.0181 / 0.1093; small scenes (6 views): 96 px photos of 32² maps with
+    shot noise 0.0596 → 0.0413, 64 px of 64² maps 0.0668 → 0.0548, but 96 px of 32² maps noise-free 0.0191 →
+    0.0288 — its checker squares
+    are 1.3 texels wide and 38 texels of the grazing band, read through neighbours with footprint weights
+    0.05–0.4, took a neighbour's colour instead of their own weak data (``solve_fast(sharing_albedo=False)``).
 
     Returns:
         ``(theta [T, P], info)`` with the cost history, accepted steps and time.
@@ -1129,7 +1155,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
 
     if not (sharing >= 0 and math.isfinite(sharing)):
         raise SolverError(f"sharing must be a finite weight ≥ 0, got {sharing!r}")
-    names = list(sharing_params) if sharing_params is not None else _shared_default(layout)
+    names = list(sharing_params) if sharing_params is not None else [s_.name for s_ in layout.specs]
     unknown = [n for n in names if n not in {s.name for s in layout.specs}]
     if unknown:
         raise SolverError(f"sharing_params {unknown} are not parameters of model '{model.name}' "
@@ -1165,11 +1191,12 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             del JWJ
             if prior is not None:
                 if it == 0:
-                    # μ in units of the data term: its curvature for a one-threshold change of a shared
+                    # μ in units of the data term: its curvature for a one-threshold change of a material
                     # parameter in a typical (median) observed texel
                     dc = torch.diagonal(B, dim1=-2, dim2=-1)[:, prior.cols] * prior.thr.square()
                     ref = dc[dc.sum(-1) > 0]
-                    prior.mu = sharing * (float(ref.median(0).values.mean()) if ref.numel() else 0.0)
+                    prior.mu = sharing * (float(ref[:, prior.calibrate].median(0).values.mean())
+                                          if ref.numel() else 0.0)
                     cost = total_of(theta)
                     history[0] = cost / n_res
                 pg, pdiag = prior.linearise(canon, dp)
@@ -1234,7 +1261,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
 
 
 def _shared_default(layout: Layout) -> list[str]:
-    """Parameters shared between neighbours by default: every one but the diffuse albedo (texture)."""
+    """Parameters a material shares (:func:`capture.sharing.share_materials`; the anchors are the texels that
+    determine all of them): every one but the diffuse albedo, which is a texture."""
     return [s.name for s in layout.specs if s.name != "albedo"]
 
 

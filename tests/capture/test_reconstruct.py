@@ -211,6 +211,20 @@ def test_fully_rough_scene_still_warns_with_sharing_on(tmp_path):
     assert rep.errors["maps"]["roughness"]["rmse"] < 0.1          # measured 0.078
 
 
+def test_albedo_prior_fills_texels_seen_only_through_their_neighbours(tmp_path):
+    # 64 px photos of 64² maps: many texels are read only through a neighbour's bilinear footprint. The joint
+    # refinement's edge-preserving prior on the albedo (default since session 5) gives them a neighbour's
+    # colour instead of a same-material fill: measured all-texel albedo RMSE 0.0548 against 0.0668 without it
+    # (sharing_albedo=False); observable texels 0.0037 against 0.0049
+    make_synthetic(small_scene("ggx-lambert", image_size=64, texture_size=64, n_views=6), tmp_path / "ds")
+    err = {}
+    for on in (True, False):
+        rep = reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / f"o{on}", progress=False,
+                          sharing_albedo=on)
+        err[on] = rep.errors["maps"]["albedo"]["rmse"]
+    assert err[True] < 0.9 * err[False] and err[True] < 0.06, err
+
+
 def test_heldout_error_of_auto_uses_the_filled_maps():
     # auto must judge the maps a user gets: the raw per-texel values of unobservable parameters are arbitrary
     from capture.reconstruct import _heldout_error

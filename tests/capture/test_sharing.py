@@ -154,6 +154,18 @@ def test_sharing_prior_gradient_and_matvec_match_its_energy():
     assert bool((diag[:, layout.cols("f0")][observed] > 0).all())
 
 
+def test_sharing_prior_weight_is_calibrated_on_the_material_parameters():
+    # every parameter is in the prior by default; μ comes from the f0 / roughness columns only (the albedo's
+    # larger curvature raised μ for all of them: default scene f0 0.0171 against 0.0161)
+    layout = Layout.of(_ggx_lambert())
+    names = [s.name for s in layout.specs]
+    prior = _SharingPrior(layout, names, 2, 2, torch.ones(4, dtype=torch.bool), 0.3)
+    cols = [c for n in names for c in layout.cols(n)]
+    assert sorted(cols[i] for i in prior.calibrate) == sorted(layout.cols("f0") + layout.cols("roughness"))
+    only_albedo = _SharingPrior(layout, ["albedo"], 2, 2, torch.ones(4, dtype=torch.bool), 0.3)
+    assert only_albedo.calibrate == [0, 1, 2]
+
+
 def test_share_option_validation():
     model = _ggx_lambert()
     gt = _two_material_scene()
