@@ -785,8 +785,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             and the joint refinement adds the edge-preserving prior of weight ``sharing`` on every parameter
             between neighbours (:func:`refine_joint`). None = on whenever the joint refinement runs (bilinear
             sampling); it then replaces ``fill_before_joint``. Measured on the default scene (docs/
-            reconstruction.md, 3 joint steps): RMSE on all observed texels albedo / f0 / roughness 0.0161 /
-            0.0159 / 0.0532 against 0.0805 / 0.1963 / 0.1892 without, on observable texels 0.0005 / 0.0017 /
+            reconstruction.md, 3 joint steps): RMSE on all observed texels albedo / f0 / roughness 0.0106 /
+            0.0161 / 0.0523 against 0.0805 / 0.1963 / 0.1892 without, on observable texels 0.0005 / 0.0017 /
             0.0018 against 0.0016 / 0.0107 / 0.0146;
             ``candidates`` 8 against 10: f0 0.021 → 0.016 here, 0.054 → 0.019 with fixed lights.
         sharing_albedo: the joint refinement's prior links neighbouring texels' albedo too (default; see
@@ -817,6 +817,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         grid = 16 if share else 32
     if not (sharing >= 0 and math.isfinite(sharing)):
         raise SolverError(f"sharing must be a finite weight ≥ 0, got {sharing!r}")
+    if not isinstance(sharing_albedo, bool):
+        raise SolverError(f"sharing_albedo must be True or False, got {sharing_albedo!r}")
     if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
         raise SolverError(f"candidates must be an integer ≥ 1 (number of shared materials), got {candidates!r}")
     if iterations < 0 or grid < 0:
@@ -1110,11 +1112,11 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     3 outer iterations, RMSE on all observed texels albedo / f0 / roughness (observable texels): default scene
     0.0161 / 0.0159 / 0.0532 → 0.0106 / 0.0161 / 0.0523 (0.0005 / 0.0017 / 0.0018 unchanged); with shot noise
     (full well 3000 e⁻) 0.0549 / 0.151 / 0.150 → 0.0241 / 0.150 / 0.149 (albedo 0.0053 → 0.0045); fixed-light
-    rig 0.0193 / 0.0180 / 0.1095 → 0.0164 / 0.0181 / 0.1093; small scenes (6 views): 96 px photos of 32² maps with
-    shot noise 0.0596 → 0.0413, 64 px of 64² maps 0.0668 → 0.0548, but 96 px of 32² maps noise-free 0.0191 →
-    0.0288 — its checker squares
-    are 1.3 texels wide and 38 texels of the grazing band, read through neighbours with footprint weights
-    0.05–0.4, took a neighbour's colour instead of their own weak data (``solve_fast(sharing_albedo=False)``).
+    rig 0.0193 / 0.0180 / 0.1095 → 0.0164 / 0.0181 / 0.1093; small scenes (6 views): 96 px photos of 32² maps
+    with shot noise 0.0596 → 0.0413, 64 px of 64² maps 0.0668 → 0.0548, but 96 px of 32² maps noise-free
+    0.0191 → 0.0288 — its checker squares are 1.3 texels wide and 38 texels of the grazing band, read through
+    neighbours with footprint weights 0.05–0.4, took a neighbour's colour instead of their own weak data
+    (``solve_fast(sharing_albedo=False)`` keeps the old behaviour).
 
     Returns:
         ``(theta [T, P], info)`` with the cost history, accepted steps and time.

@@ -174,6 +174,8 @@ def test_share_option_validation():
         solve_fast(model, obs, candidates=0)
     with pytest.raises(SolverError, match="sharing"):
         solve_fast(model, obs, sharing=-1.0)
+    with pytest.raises(SolverError, match="sharing_albedo must be True or False"):
+        solve_fast(model, obs, sharing_albedo="no")
 
 
 def test_albedo_prior_by_hand():
