@@ -23,7 +23,7 @@ albedo, for exactly the flash-light setting), :func:`share_materials`
 
 Anchors keep their own fit. Measured on the default scene (docs/reconstruction.md, "Reflectance
 sharing" and "Session 4"): RMSE on all observed texels albedo / f0 / roughness 0.0805 / 0.1963 / 0.1892
-→ 0.0106 / 0.0161 / 0.0523 after the joint refinement (0.0161 / 0.0159 / 0.0532 before the albedo joined its
+→ 0.0089 / 0.0159 / 0.0531 after the joint refinement (0.0161 / 0.0159 / 0.0532 before the albedo joined its
 prior, session 5); this stage takes ~5 s of the 20–24 (2 threads).
 
 The result initialises the joint refinement, whose edge-preserving prior

@@ -785,17 +785,16 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             and the joint refinement adds the edge-preserving prior of weight ``sharing`` on every parameter
             between neighbours (:func:`refine_joint`). None = on whenever the joint refinement runs (bilinear
             sampling); it then replaces ``fill_before_joint``. Measured on the default scene (docs/
-            reconstruction.md, 3 joint steps): RMSE on all observed texels albedo / f0 / roughness 0.0106 /
-            0.0161 / 0.0523 against 0.0805 / 0.1963 / 0.1892 without, on observable texels 0.0005 / 0.0017 /
+            reconstruction.md, 3 joint steps): RMSE on all observed texels albedo / f0 / roughness 0.0089 /
+            0.0159 / 0.0531 against 0.0805 / 0.1963 / 0.1892 without, on observable texels 0.0005 / 0.0017 /
             0.0018 against 0.0016 / 0.0107 / 0.0146;
             ``candidates`` 8 against 10: f0 0.021 → 0.016 here, 0.054 → 0.019 with fixed lights.
         sharing_albedo: the joint refinement's prior links neighbouring texels' albedo too (default; see
-            :func:`refine_joint` for the measurements). Where the photos determine a texel's albedo the prior's
-            linear tail lets it jump; where they barely do (texels read only through a neighbour's bilinear
-            footprint, the grazing band) it takes a neighbour's. False keeps such texels nearer their own weak
-            data: better for a texture finer than the photos resolve (small scene with 1.3-texel checker squares:
-            all-texel albedo RMSE 0.0191 against 0.0288), worse on the default scene (0.0161 against 0.0106)
-            and with shot noise (0.0549 against 0.0241).
+            :func:`refine_joint` for the measurements). Where the photos determine a texel's albedo the data win;
+            where they barely do (texels read only through a neighbour's bilinear footprint, the grazing band) it
+            follows its neighbours, edges kept. Default scene: all-texel albedo RMSE 0.0089 against 0.0161
+            without; with shot noise 0.0425 against 0.0549; a texture finer than the texels (1.3-texel checker
+            squares) 0.0195 against 0.0191.
         reproject: every this many iterations re-solve the linear parameters in closed form at the
             current nonlinear ones (a variable-projection step, 1 + #linear evaluations); 0 = never.
         progress: callback ``(stage, iteration, cost)``.
@@ -998,28 +997,39 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
 
 
 # -- joint refinement with the bilinear footprint -------------------------------------------------
+#: Units of the joint refinement's edge-preserving prior where they differ from the observability thresholds
+#: (:func:`std_threshold`). The albedo is a texture, whose neighbours differ by design: in units of 0.3 (a third
+#: of its range) the prior smooths differences below 0.09 and charges larger ones linearly. Measured, all-texel
+#: albedo RMSE with the unit 0.01 / 0.03 / 0.1 / 0.3 / 1 / 3 (and with no albedo prior): default scene 0.0106 /
+#: 0.0097 / 0.0090 / 0.0089 / 0.0102 / 0.0116 (0.0161); the same with 64² maps 0.0147 / 0.0116 / 0.0085 / 0.0063 /
+#: 0.0062 / 0.0061 (0.0084); docs/reconstruction.md, "Session 5", for the other scenes.
+PRIOR_UNIT = {"albedo": 0.3}
+
+
 class _SharingPrior:
     """Edge-preserving prior that lets neighbouring texels share parameters (see :func:`refine_joint`).
 
     Energy ``μ Σ_edges Σ_c ρ_H((p_ic − p_jc) / t_c)`` over 4-neighbour pairs (i, j) of observed
-    texels, ``p`` the canonical values of the shared parameters' channels, ``t_c`` their observability
-    thresholds (:func:`std_threshold`) and ρ_H the Huber cost of :func:`robust_rho` with scale δ:
-    quadratic — smoothing — for differences below δ thresholds (smooth gradients of a material),
-    linear beyond (region borders keep their jump). Gauss-Newton enters it through IRLS weights.
+    texels, ``p`` the canonical values of the shared parameters' channels, ``t_c`` their units — the
+    observability thresholds (:func:`std_threshold`), or :data:`PRIOR_UNIT` where it gives one — and ρ_H the
+    Huber cost of :func:`robust_rho` with scale δ: quadratic — smoothing — for differences below δ units
+    (smooth gradients of a material), linear beyond (region borders keep their jump). Gauss-Newton enters it
+    through IRLS weights.
     """
 
     def __init__(self, layout: Layout, names: Sequence[str], H: int, W: int, observed: Tensor, delta: float):
         self.cols = [c for n in names for c in layout.cols(n)]
         # the columns whose data curvature sets μ (refine_joint): those of the material parameters when the
-        # prior has any. The albedo's curvature is larger (a texel's colour is seen wherever the texel is),
-        # and calibrating on it too raised μ for every parameter (default scene: f0 0.0171 against 0.0161)
+        # prior has any. The albedo's curvature is larger (a texel's colour is seen wherever the texel is), and
+        # calibrating on it too raised μ for every parameter (default scene, albedo in units of 0.01: f0 0.0171
+        # against 0.0161)
         material = set(_shared_default(layout))
         col_names = [n for n in names for _ in layout.cols(n)]
         self.calibrate = [i for i, n in enumerate(col_names) if n in material] or list(range(len(col_names)))
         dev = observed.device
         spec = {s.name: s for s in layout.specs}
-        self.thr = torch.tensor([std_threshold(spec[n]) for n in names
-                                 for _ in layout.cols(n)], dtype=ACC, device=dev)
+        self.thr = torch.tensor([PRIOR_UNIT.get(n, std_threshold(spec[n])) for n in names for _ in layout.cols(n)],
+                                dtype=ACC, device=dev)
         ids = torch.arange(H * W, device=dev).reshape(H, W)
         ok = observed.reshape(H, W)
         pairs = [(ids[:, :-1][ok[:, :-1] & ok[:, 1:]], ids[:, 1:][ok[:, :-1] & ok[:, 1:]]),
@@ -1105,18 +1115,17 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     observed texels albedo / f0 / roughness 0.026 / 0.031 / 0.079 without the prior, 0.017 / 0.024 /
     0.058 with μ = 1, δ = 1, 0.017 / 0.021 / 0.056 with δ = 0.3 (the default; 10 candidates); μ = 0.3 or 3 change
     them by < 0.003. The albedo is in the prior's default set since session 5 (before: every parameter but
-    the albedo, which varies per texel by design): where the photos determine it the prior's linear tail lets
-    it jump at the checker's edges, where they do not — texels read only through a neighbour's bilinear
-    footprint, the grazing band — it interpolates with the edges kept. μ is still calibrated on the material
-    parameters (the albedo's curvature would raise it for all: f0 0.0171 instead of 0.0161 below). Measured,
-    3 outer iterations, RMSE on all observed texels albedo / f0 / roughness (observable texels): default scene
-    0.0161 / 0.0159 / 0.0532 → 0.0106 / 0.0161 / 0.0523 (0.0005 / 0.0017 / 0.0018 unchanged); with shot noise
-    (full well 3000 e⁻) 0.0549 / 0.151 / 0.150 → 0.0241 / 0.150 / 0.149 (albedo 0.0053 → 0.0045); fixed-light
-    rig 0.0193 / 0.0180 / 0.1095 → 0.0164 / 0.0181 / 0.1093; small scenes (6 views): 96 px photos of 32² maps
-    with shot noise 0.0596 → 0.0413, 64 px of 64² maps 0.0668 → 0.0548, but 96 px of 32² maps noise-free
-    0.0191 → 0.0288 — its checker squares are 1.3 texels wide and 38 texels of the grazing band, read through
-    neighbours with footprint weights 0.05–0.4, took a neighbour's colour instead of their own weak data
-    (``solve_fast(sharing_albedo=False)`` keeps the old behaviour).
+    the albedo, which varies per texel by design), in units of :data:`PRIOR_UNIT` (0.3): where the photos
+    determine a texel's albedo the data win, where they barely do — texels read only through a neighbour's
+    bilinear footprint, the grazing band — it follows its neighbours with the edges kept. μ is still calibrated
+    on the material parameters (calibrating on the albedo's larger curvature too raised it for all: f0 0.0171
+    instead of 0.0161). Measured, 3 outer iterations, RMSE on all observed texels albedo / f0 / roughness:
+    default scene 0.0161 / 0.0159 / 0.0532 → 0.0089 / 0.0159 / 0.0531 (observable texels unchanged, 0.0005 /
+    0.0017 / 0.0018); the same with 64² maps albedo 0.0084 → 0.0063; with shot noise (full well 3000 e⁻) 0.0549
+    → 0.0425; fixed-light rig 0.0193 → 0.0118; small scenes (6 views) of 96 px photos and 32² maps with shot
+    noise 0.0596 → 0.0438, of 64 px and 64² maps 0.0668 → 0.0522, of 96 px and 32² maps noise-free 0.0191 →
+    0.0195 (its checker squares are 1.3 texels wide). In units of the albedo's observability threshold (0.01)
+    the noisy scene gained more (0.0241) but fine textures lost (64² maps 0.0147, the 1.3-texel checker 0.0288).
 
     Returns:
         ``(theta [T, P], info)`` with the cost history, accepted steps and time.

@@ -156,7 +156,8 @@ def test_sharing_prior_gradient_and_matvec_match_its_energy():
 
 def test_sharing_prior_weight_is_calibrated_on_the_material_parameters():
     # every parameter is in the prior by default; μ comes from the f0 / roughness columns only (the albedo's
-    # larger curvature raised μ for all of them: default scene f0 0.0171 against 0.0161)
+    # larger curvature raised μ for all of them: default scene, albedo in units of 0.01, f0 0.0171 against
+    # 0.0161)
     layout = Layout.of(_ggx_lambert())
     names = [s.name for s in layout.specs]
     prior = _SharingPrior(layout, names, 2, 2, torch.ones(4, dtype=torch.bool), 0.3)
