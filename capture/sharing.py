@@ -80,10 +80,9 @@ def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, itera
 def _chi2_observations(obs: Observations, noise: tuple[float, float]) -> Observations:
     """The observations with weights divided by the photo noise variance (mean over channels), so
     that costs are χ² values: ``σ = rel · max(|y|, floor · median y)`` as in :func:`posterior_std`."""
-    rel, floor = noise
-    y = obs.radiance.double()
-    med = float(y.abs().mean(-1).median().clamp_min(1e-12))
-    sig2 = (rel * torch.maximum(y.abs(), torch.full_like(y, floor * med))).square().mean(-1)
+    from .solvers import noise_sigma
+
+    sig2 = noise_sigma(obs.radiance.double(), noise).square().mean(-1)
     return replace(obs, weight=(obs.weight.double() / sig2).to(obs.weight.dtype))
 
 

@@ -403,6 +403,14 @@ def _check_noise(noise) -> tuple[float, float]:
     return rel, floor
 
 
+def noise_sigma(y: Tensor, noise) -> Tensor:
+    """Photo noise std ``[S, 3]`` of radiances ``y [S, 3]`` under the noise model ``noise = (rel, floor)``:
+    ``σ = rel · max(|y|, floor · median y)`` (1 % of the signal by default, never below 0.1 % of the median)."""
+    rel, floor = _check_noise(noise)
+    med = float(y.abs().mean(-1).median().clamp_min(1e-12))
+    return rel * torch.maximum(y.abs(), torch.full_like(y, floor * med))
+
+
 def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor, groups, *, loss: str = "l2",
                   delta: float = 1.0, noise=NOISE, sampling: str = "nearest") -> tuple[Tensor, Tensor, Tensor]:
     """Marginal posterior standard deviation of every parameter column in every texel.
@@ -427,7 +435,7 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
     Returns:
         ``(std [T, P], observed [T] bool, pred [S, 3])`` — std is +inf where unobserved.
     """
-    rel, floor = _check_noise(noise)
+    _check_noise(noise)
     T, P = canon.shape
     with torch.no_grad():
         if sampling == "bilinear":
@@ -439,9 +447,7 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
         pred, J = _jacobian(model, layout, obs, per, groups, canonical=True)
         y = obs.radiance.to(ACC)
         r = y - pred
-        med = float(y.abs().mean(-1).median().clamp_min(1e-12))
-        sig2 = (rel * torch.maximum(y.abs(), torch.full_like(y, floor * med))).square()
-        w = obs.weight.to(ACC)[:, None] * _irls(r, loss, delta) / sig2                  # [S, 3]
+        w = obs.weight.to(ACC)[:, None] * _irls(r, loss, delta) / noise_sigma(y, noise).square()   # [S, 3]
         JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)                                # [S, P, P]
         chi_s = (w * r * r).sum(-1)
         per_sample = torch.stack([chi_s, 3.0 * (obs.weight.to(ACC) > 0)], -1)         # [S, 2]
@@ -765,7 +771,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         tol: stop when the relative decrease of the total cost over an iteration is below this.
         observable_std: threshold(s) on the marginal posterior std (canonical units) below which a
             parameter is observable (:func:`posterior_std`, default :data:`OBSERVABLE_STD`).
-        noise: photo noise model ``(relative std, floor)`` of :func:`posterior_std`.
+        noise: photo noise model ``(relative std, floor)`` of :func:`posterior_std` (also the sharing's χ² and
+            the reference of the albedo prior's noise-adaptive unit, :func:`refine_joint`).
         sampling: "nearest" (texels independent: per-texel LM is exact) or "bilinear" (the photos
             read four texels per sample: the per-texel LM — with nearest sampling — initialises
             :func:`refine_joint`, ``joint_iterations`` joint LM steps with ``cg_iterations`` PCG
@@ -792,9 +799,10 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         sharing_albedo: the joint refinement's prior links neighbouring texels' albedo too (default; see
             :func:`refine_joint` for the measurements). Where the photos determine a texel's albedo the data win;
             where they barely do (texels read only through a neighbour's bilinear footprint, the grazing band) it
-            follows its neighbours, edges kept. Default scene: all-texel albedo RMSE 0.0089 against 0.0161
-            without; with shot noise 0.0425 against 0.0549; a texture finer than the texels (1.3-texel checker
-            squares) 0.0195 against 0.0191.
+            follows its neighbours, edges kept; its unit shrinks when the residuals say the photos are noisier
+            than ``noise``. Default scene: all-texel albedo RMSE 0.0089 against 0.0161 without; with shot noise
+            0.0264 against 0.0549; a texture finer than the texels (1.3-texel checker squares) 0.0201 against
+            0.0191.
         reproject: every this many iterations re-solve the linear parameters in closed form at the
             current nonlinear ones (a variable-projection step, 1 + #linear evaluations); 0 = never.
         progress: callback ``(stage, iteration, cost)``.
@@ -988,7 +996,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         theta, jinfo = refine_joint(model, obs, layout, theta, groups, loss=loss, delta=delta,
                                     iterations=joint_iterations, cg_iterations=cg_iterations,
                                     sharing=sharing if share else 0.0, progress=progress,
-                                    sharing_params=None if sharing_albedo else _shared_default(layout))
+                                    sharing_params=None if sharing_albedo else _shared_default(layout),
+                                    noise=noise, noise_adaptive=("albedo",))
         info.update(jinfo)
         history.append(jinfo["joint_history"][-1])
     return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,
@@ -1028,8 +1037,8 @@ class _SharingPrior:
         self.calibrate = [i for i, n in enumerate(col_names) if n in material] or list(range(len(col_names)))
         dev = observed.device
         spec = {s.name: s for s in layout.specs}
-        self.thr = torch.tensor([PRIOR_UNIT.get(n, std_threshold(spec[n])) for n in names for _ in layout.cols(n)],
-                                dtype=ACC, device=dev)
+        self.col_names = col_names
+        self.thr = torch.tensor([PRIOR_UNIT.get(n, std_threshold(spec[n])) for n in col_names], dtype=ACC, device=dev)
         ids = torch.arange(H * W, device=dev).reshape(H, W)
         ok = observed.reshape(H, W)
         pairs = [(ids[:, :-1][ok[:, :-1] & ok[:, 1:]], ids[:, 1:][ok[:, :-1] & ok[:, 1:]]),
@@ -1039,6 +1048,12 @@ class _SharingPrior:
         self.delta = float(delta)
         self.mu = 0.0
         self.omega = None
+
+    def set_units(self, units: Mapping[str, float]) -> None:
+        """Replace the units of the parameters in ``units`` (name → unit)."""
+        for i, n in enumerate(self.col_names):
+            if n in units:
+                self.thr[i] = float(units[n])
 
     def _diff(self, canon: Tensor) -> Tensor:
         c = canon[:, self.cols] / self.thr
@@ -1092,6 +1107,7 @@ def _sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True
 def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor, groups, *, loss: str, delta: float,
                  iterations: int = 4, cg_iterations: int = 25, sampling: str = "bilinear",
                  sharing: float = 0.0, sharing_params: Sequence[str] | None = None, sharing_delta: float = 0.3,
+                 noise=NOISE, noise_adaptive: Sequence[str] = (),
                  progress: Callable[[str, int, float], None] | None = None) -> tuple[Tensor, dict]:
     """Levenberg-Marquardt over *all* texels at once with the true (bilinear) sampling footprint.
 
@@ -1122,10 +1138,21 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     instead of 0.0161). Measured, 3 outer iterations, RMSE on all observed texels albedo / f0 / roughness:
     default scene 0.0161 / 0.0159 / 0.0532 → 0.0089 / 0.0159 / 0.0531 (observable texels unchanged, 0.0005 /
     0.0017 / 0.0018); the same with 64² maps albedo 0.0084 → 0.0063; with shot noise (full well 3000 e⁻) 0.0549
-    → 0.0425; fixed-light rig 0.0193 → 0.0118; small scenes (6 views) of 96 px photos and 32² maps with shot
-    noise 0.0596 → 0.0438, of 64 px and 64² maps 0.0668 → 0.0522, of 96 px and 32² maps noise-free 0.0191 →
-    0.0195 (its checker squares are 1.3 texels wide). In units of the albedo's observability threshold (0.01)
+    → 0.0425 (0.0264 with the noise-adaptive unit below); fixed-light rig 0.0193 → 0.0118; small scenes (6 views)
+    of 96 px photos and 32² maps with shot noise 0.0596 → 0.0438 (0.0378 adaptive), of 64 px and 64² maps
+    0.0668 → 0.0522 (0.0510), of 96 px and 32² maps noise-free 0.0191 → 0.0195 (0.0201; its checker squares are
+    1.3 texels wide). In units of the albedo's observability threshold (0.01)
     the noisy scene gained more (0.0241) but fine textures lost (64² maps 0.0147, the 1.3-texel checker 0.0288).
+
+    ``noise_adaptive`` names prior parameters whose unit follows the photos' noise (solve_fast: the albedo):
+    from the second outer iteration on, unit = base unit / max(1, ratio), with ratio the median χ² per residual
+    of the current bilinear fit under the noise model ``noise`` (:func:`noise_sigma`) — noisier photos, a
+    stronger prior, in proportion to the noise variance as a prior's weight against χ²-weighted data would be.
+    At the first iteration the residuals still hold the sharing's misfit, so the base unit is kept. Measured
+    ratios (2nd, 3rd iteration): default scene 0.0018, 0.0003; fixed rig 0.011, 0.0045; 1.3-texel checker
+    1.6, 0.047; shot noise 3 000 e⁻ 24.7, 18.9 (unit 0.016) and on the small scene 59.9, 40.1 (unit 0.0075).
+    All-texel albedo with / without the adaptation: shot noise 0.0264 / 0.0425, small scene with shot noise
+    0.0378 / 0.0438, 1.3-texel checker 0.0201 / 0.0195, noise-free scenes unchanged (ratio < 1).
 
     Returns:
         ``(theta [T, P], info)`` with the cost history, accepted steps and time.
@@ -1181,6 +1208,9 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             observed[obs.texel] = True
         if names:
             prior = _SharingPrior(layout, names, H, W, observed, sharing_delta)
+    adapt = [n for n in noise_adaptive if n in names] if prior is not None else []
+    base_units = {n: float(prior.thr[prior.col_names.index(n)]) for n in adapt}
+    noise_ratios: list[float] = []
 
     def total_of(th):
         c = cost_of(th)
@@ -1195,6 +1225,13 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             dp = layout.dcanonical(theta)
             pred, J = _jacobian(model, layout, obs, gather(canon), groups, canonical=True)
             r = y - pred
+            if prior is not None and adapt and it >= 1:
+                # the photos' noise against the noise model, from the residuals of the bilinear fit so far (at
+                # it = 0 they still hold the sharing's misfit); the adaptive units shrink with it
+                ratio = float((r / noise_sigma(y, noise)).square().mean(-1).median())
+                prior.set_units({n: base_units[n] / max(1.0, ratio) for n in adapt})
+                noise_ratios.append(ratio)
+                cost = total_of(theta)
             w = obs.weight.to(ACC)[:, None] * _irls(r, loss, delta)                    # [S, 3]
             g = scatter(torch.einsum("scp,sc->sp", J, w * r)) * dp                      # JᵀWr in θ
             JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)
@@ -1267,8 +1304,12 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             progress("joint", it + 1, history[-1])
         if len(history) > 1 and history[-2] - history[-1] <= 1e-6 * history[-2]:
             break
-    return theta, {"joint_s": time.perf_counter() - t0, "joint_history": history, "joint_accepted": accepted,
-                   "joint_sampling": sampling}
+    out = {"joint_s": time.perf_counter() - t0, "joint_history": history, "joint_accepted": accepted,
+           "joint_sampling": sampling}
+    if noise_ratios:
+        out["noise_ratio"] = noise_ratios
+        out["prior_units"] = {n: float(prior.thr[prior.col_names.index(n)]) for n in adapt}
+    return theta, out
 
 
 def _shared_default(layout: Layout) -> list[str]:

@@ -212,21 +212,32 @@ def test_fully_rough_scene_still_warns_with_sharing_on(tmp_path):
 
 
 def test_albedo_prior_fills_texels_seen_only_through_their_neighbours(tmp_path):
-    # The joint refinement's edge-preserving prior on the albedo (default since session 5, in units of 0.3).
-    # 64 px photos of 64² maps: many texels are read only through a neighbour's bilinear footprint; they follow
-    # their neighbours instead of a same-material fill: measured all-texel albedo RMSE 0.0522 against 0.0668
-    # without it (sharing_albedo=False). 96 px photos of 32² maps, checker squares of 1.3 texels: a texture
-    # finer than the texels must not be smoothed away: measured 0.0195 against 0.0191 (in units of the
-    # albedo's observability threshold, 0.01, the prior made it 0.0288)
-    err = {}
-    for name, size, tex in (("coarse", 64, 64), ("fine", 96, 32)):
-        make_synthetic(small_scene("ggx-lambert", image_size=size, texture_size=tex, n_views=6), tmp_path / name)
-        for on in (True, False):
+    # The joint refinement's edge-preserving prior on the albedo (default since session 5, in units of 0.3 that
+    # shrink with the photos' noise). 64 px photos of 64² maps: many texels are read only through a neighbour's
+    # bilinear footprint; they follow their neighbours instead of a same-material fill: measured all-texel
+    # albedo RMSE 0.0510 against 0.0668 without the albedo prior (sharing_albedo=False). 96 px photos of 32²
+    # maps, checker squares of 1.3 texels: a texture finer than the texels must not be smoothed away: 0.0201
+    # against 0.0191 (in units of 0.01 the prior made it 0.0288). The same with shot noise (full well 3 000 e⁻):
+    # the residuals say the photos are ~40× noisier than the noise model, the unit drops to 0.0075 and the
+    # albedo comes back at 0.0378 (0.0438 with the unit kept at 0.3, 0.0596 without the albedo prior)
+    from capture.photo import PhotoModel
+
+    err, unit = {}, {}
+    scenes = (("coarse", 64, 64, PhotoModel()), ("fine", 96, 32, PhotoModel()),
+              ("noisy", 96, 32, PhotoModel(full_well=3000.0)))
+    for name, size, tex, photo in scenes:
+        make_synthetic(small_scene("ggx-lambert", image_size=size, texture_size=tex, n_views=6, photo=photo),
+                       tmp_path / name)
+        for on in (True, False) if name != "noisy" else (True,):
             rep = reconstruct(tmp_path / name, model="ggx-lambert", out_dir=tmp_path / f"o{name}{on}", progress=False,
                               sharing_albedo=on)
             err[name, on] = rep.errors["maps"]["albedo"]["rmse"]
+            if on:
+                unit[name] = rep.fit["prior_units"]["albedo"]
     assert err["coarse", True] < 0.9 * err["coarse", False] and err["coarse", True] < 0.06, err
     assert err["fine", True] < 1.1 * err["fine", False], err
+    assert unit["coarse"] == unit["fine"] == 0.3 and unit["noisy"] < 0.03, unit
+    assert err["noisy", True] < 0.042, err
 
 
 def test_heldout_error_of_auto_uses_the_filled_maps():
