@@ -1208,6 +1208,10 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             observed[obs.texel] = True
         if names:
             prior = _SharingPrior(layout, names, H, W, observed, sharing_delta)
+    bad = [n for n in noise_adaptive if n not in {s_.name for s_ in layout.specs}]
+    if bad:
+        raise SolverError(f"noise_adaptive {bad} are not parameters of model '{model.name}' "
+                          f"({[s_.name for s_ in layout.specs]})")
     adapt = [n for n in noise_adaptive if n in names] if prior is not None else []
     base_units = {n: float(prior.thr[prior.col_names.index(n)]) for n in adapt}
     noise_ratios: list[float] = []

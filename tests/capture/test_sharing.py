@@ -235,3 +235,6 @@ def test_refine_joint_rejects_bad_sharing_options():
                      sharing_params=["gloss"])
     with pytest.raises(SolverError, match="sharing must be"):
         refine_joint(model, obs, layout, theta, groups, loss="l2", delta=1.0, sampling="nearest", sharing=-1.0)
+    with pytest.raises(SolverError, match="noise_adaptive"):
+        refine_joint(model, obs, layout, theta, groups, loss="l2", delta=1.0, sampling="nearest", sharing=1.0,
+                     noise_adaptive=["gloss"])
