@@ -1141,8 +1141,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     → 0.0425 (0.0264 with the noise-adaptive unit below); fixed-light rig 0.0193 → 0.0118; small scenes (6 views)
     of 96 px photos and 32² maps with shot noise 0.0596 → 0.0438 (0.0378 adaptive), of 64 px and 64² maps
     0.0668 → 0.0522 (0.0510), of 96 px and 32² maps noise-free 0.0191 → 0.0195 (0.0201; its checker squares are
-    1.3 texels wide). In units of the albedo's observability threshold (0.01)
-    the noisy scene gained more (0.0241) but fine textures lost (64² maps 0.0147, the 1.3-texel checker 0.0288).
+    1.3 texels wide). In units of the albedo's observability threshold (0.01) the noisy scene gained more
+    (0.0241) but fine textures lost (64² maps 0.0147, the 1.3-texel checker 0.0288).
 
     ``noise_adaptive`` names prior parameters whose unit follows the photos' noise (solve_fast: the albedo):
     from the second outer iteration on, unit = base unit / max(1, ratio), with ratio the median χ² per residual
@@ -1310,7 +1310,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             break
     out = {"joint_s": time.perf_counter() - t0, "joint_history": history, "joint_accepted": accepted,
            "joint_sampling": sampling}
-    if noise_ratios:
+    if adapt:   # the ratios measured (none when the refinement stopped after one iteration) and the final units
         out["noise_ratio"] = noise_ratios
         out["prior_units"] = {n: float(prior.thr[prior.col_names.index(n)]) for n in adapt}
     return theta, out
