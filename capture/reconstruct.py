@@ -373,11 +373,14 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     t = time.perf_counter()
     scalar_notes = {}
     try:
-        fit = _solve(mdl, obs, solver, loss, options, cb)
         to_fit = [n for n in scalars if n in mdl.param_names]
+        # with scalars to fit, the per-texel fit first — without the reflectance sharing, which would replace
+        # the texels' own coat by a few materials' (bilinear layered scene: coat η 1.645 against 1.5006 from the
+        # 3 texels that determine it) — then each scalar's median where it is observable, held fixed in a second
+        # fit of the rest
+        first = dict(options, joint_iterations=0, share=False) if to_fit and solver == "fast" else options
+        fit = _solve(mdl, obs, solver, loss, first, cb)
         if to_fit:
-            # per-texel fit first, then each scalar parameter's median where it is observable, held
-            # fixed in a second fit of the rest
             values, notes = _fit_scalars(mdl, fit, to_fit)
             scalar_notes = notes
             for n, note in notes.items():
