@@ -237,7 +237,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             allocated per texel.
         scalars: parameters fitted as *one* value for the whole object rather than per texel (default
             :data:`SCALARS`: the coat's η and roughness; names the model lacks are ignored): a per-texel
-            fit, then each one's median over the texels where it is observable (``fit.scalars`` in the
+            fit (fast solver: without the sharing and the joint refinement, which replace a texel's own values by
+            a material's), then each one's median over the texels where it is observable (``fit.scalars`` in the
             report, with a warning where it is observable nowhere), held fixed in a second fit of the
             rest. Known values take precedence. ``()`` = everything per texel. Not applied to the trial
             fits of ``model="auto"``, only to the final one.
@@ -426,6 +427,14 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                 f"how densely the photos "
                 f"sample directions (a near-mirror surface), not a measurement; more views or light positions, "
                 f"or higher resolution, resolve it")
+    fb = fit.info.get("sharing_fallback")
+    if fb and fb["kept"] == "fallback":
+        report.warnings.append(
+            f"reflectance sharing: the {len(fit.info.get('materials', []))} materials found explain the photos worse "
+            f"than the per-texel fit (data cost {fb['shared_data_cost']:.3g} against {fb['per_texel_data_cost']:.3g}); "
+            f"the {fb['own_fit_texels']} texels whose own samples reject their material keep their own fit (data cost "
+            f"{fb['fallback_data_cost']:.3g}) — a material of the object gave no texel that determines it (more views "
+            f"or lights off the camera axis would)")
     report.fit = {"iterations": fit.iterations, "final_cost": fit.history[-1] if fit.history else None,
                   "seconds": fit.time_s, **{k: v for k, v in fit.info.items() if k != "accepted"}}
     if scalar_notes:

@@ -47,7 +47,7 @@ from materials.model import Model
 
 from .observations import Observations
 
-__all__ = ["share_materials", "kmeans_pp"]
+__all__ = ["share_materials", "unmatched_texels", "kmeans_pp"]
 
 
 def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, iterations: int = 50) -> Tensor:
@@ -207,7 +207,9 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         ``(theta [T, P], info)``: θ with the shared parameters of the assigned material and the
         albedo re-solved in closed form, except at the anchors, which keep their own fit; ``info``
         has ``materials`` (canonical values of each), ``labels`` ``[T]`` (−1 where unobserved),
-        ``decided_at`` (texel counts per box size), ``share_s`` and the shared parameter names.
+        ``material_cost`` ``[T]`` (χ² of each texel's own samples under its material, nearest texel; for
+        :func:`unmatched_texels`), ``decided_at`` (texel counts per box size), ``share_s`` and the shared
+        parameter names.
         Unchanged θ (``info["materials"] = []``) when the model has nothing to share or there are
         no anchors.
     """
@@ -288,7 +290,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
             mat = _refit(model, layout, chi, theta, mat, label, scols, groups, y, w, refit_iterations)
         th = theta.clone()
         th[:, scols] = mat[label][:, scols]
-        th, _ = _linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
+        th, material_cost = _linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
         # anchors keep their own fit: their samples determined it, and a material's smooth variation
         # (a roughness gradient) lives there
         theta = torch.where(anchors[:, None], theta_in, th)
@@ -299,9 +301,37 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     lab = torch.where(observed, label, torch.full_like(label, -1))
     mats = layout.unpack(mat)
     info.update(materials=[{s.name: mats[s.name][k].tolist() for s in shared} for k in range(K)], labels=lab,
-                decided_at=decided, texels_per_material=torch.bincount(label[observed], minlength=K).tolist(),
+                material_cost=material_cost, decided_at=decided,
+                texels_per_material=torch.bincount(label[observed], minlength=K).tolist(),
                 share_s=time.perf_counter() - t0)
     return theta, info
+
+
+def unmatched_texels(model: Model, obs: Observations, layout, theta: Tensor, info: dict, *, evidence: float = 10.0,
+                     noise: tuple[float, float] = (0.01, 0.1)) -> Tensor:
+    """``[T]`` bool: texels whose own per-texel fit ``theta`` beats their shared material by more than
+    ``evidence`` χ² (noise model ``noise``; albedo re-solved in closed form for both, nearest texel) — the
+    photos reject every candidate there, e.g. a metal when no metal material was found.
+
+    ``info`` is :func:`share_materials`'s (its ``material_cost`` and ``labels``). The difference is divided
+    by the misfit s² = max(1, χ²_best / residuals) as in :func:`_assign`. On the default scene (a good
+    material set) 4 % of the observed texels are unmatched — stripe borders, whose nearest-texel fit
+    absorbs the bilinear mixing, and the roughness gradient; on a layered scene whose metals gave no
+    anchor, 37 %. :func:`capture.solvers.solve_fast` uses them only when the sharing has failed.
+    """
+    from .solvers import _linear_solve, _separable
+
+    if "material_cost" not in info:
+        raise ValueError("unmatched_texels: info must come from share_materials (it has no 'material_cost')")
+    per_texel = [s for s in layout.specs if s.name == "albedo" and s.linear]
+    sep = {s.name: s.channels == 3 and _separable(model, s, obs.dtype) for s in per_texel}
+    chi = _chi2_observations(obs, noise)
+    with torch.no_grad():
+        _, own_cost = _linear_solve(model, layout, chi, theta, per_texel, sep, "l2", 1.0)
+    mcost = info["material_cost"]
+    residuals = 3.0 * torch.bincount(obs.texel, minlength=theta.shape[0]).to(mcost)
+    s2 = (torch.minimum(own_cost, mcost) / residuals.clamp_min(1)).clamp_min(1.0)
+    return (info["labels"] >= 0) & (residuals > 0) & ((mcost - own_cost) / s2 > evidence)
 
 
 def borrow_albedo(layout, theta: Tensor, label: Tensor, own: Tensor, H: int, W: int) -> Tensor:

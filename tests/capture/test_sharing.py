@@ -6,7 +6,7 @@ import torch.nn.functional as F
 
 import materials
 from capture.observations import synthetic_observations
-from capture.sharing import _albedo_prior, _assign, _box_sum, _excess, kmeans_pp, share_materials
+from capture.sharing import _albedo_prior, _assign, _box_sum, _excess, kmeans_pp, share_materials, unmatched_texels
 from capture.solvers import Layout, SolverError, _SharingPrior, robust_rho, solve_fast
 
 
@@ -104,6 +104,28 @@ def test_share_materials_recovers_unobservable_texels_from_their_material():
         assert float(err) < 1e-3, (k, float(err))
     assert 2 <= len(info["materials"]) <= 4
     assert sum(info["texels_per_material"]) == 256
+
+
+def test_unmatched_texels_are_those_whose_photos_reject_every_material():
+    model = _ggx_lambert()
+    gt = _two_material_scene()
+    obs = synthetic_observations(model, gt, samples_per_texel=12, highlight_fraction=0.34, seed=1)
+    layout = Layout.of(model)
+    fit = solve_fast(model, obs, share=False)
+    anchors = (~fit.unobservable["f0"] & ~fit.unobservable["roughness"]).reshape(-1)
+    theta = layout.pack({k: v.reshape(-1, v.shape[-1]).double() for k, v in fit.raw.items()})
+    _, info = share_materials(model, obs, layout, theta, anchors, candidates=4)
+    assert not bool(unmatched_texels(model, obs, layout, theta, info).any())       # both materials found
+    # no anchor among the metal's texels (as on a layered scene whose metals' base lobe is never determined): only
+    # the dielectric material exists, the metal texels reject it; measured: all 128 of them, no dielectric texel
+    cols = torch.arange(256) % 16
+    _, info_d = share_materials(model, obs, layout, theta, anchors & (cols >= 8), candidates=1, refit_iterations=0)
+    assert all(m["f0"][0] < 0.1 for m in info_d["materials"]), info_d["materials"]
+    un = unmatched_texels(model, obs, layout, theta, info_d)
+    assert int(un[cols < 8].sum()) >= 120 and int(un[cols >= 8].sum()) == 0, (int(un[cols < 8].sum()),
+                                                                              int(un[cols >= 8].sum()))
+    with pytest.raises(ValueError, match="share_materials"):
+        unmatched_texels(model, obs, layout, theta, {"labels": info["labels"]})
 
 
 def test_share_materials_leaves_models_without_shared_parameters_alone():
