@@ -18,8 +18,14 @@ albedo, for exactly the flash-light setting), :func:`share_materials`
    material also carries an albedo distribution (:func:`_albedo_prior`), so that a texel whose
    photos cannot tell a metal's lobe from a dielectric's is not given the metal when its albedo is
    blue;
-3. refits each candidate's shared parameters on all samples of its texels (Levenberg–Marquardt per
-   candidate, albedo held) and repeats 2–3 ``rounds`` times.
+3. drops the candidates the photos do not need (:func:`_supported`: backward elimination while the
+   least-needed candidate's evidence — the excess χ² its texels would pay at their next best, capped
+   per texel — is below ``min_evidence``) before each assignment: with more candidates than materials
+   k-means spends the spare ones on duplicates and border mixtures, and a mixture backed by too few
+   anchors has no albedo statistics to reject anything, so weakly observed texels sink into it
+   (default rig with 3 materials: 2 175 rough-dielectric texels took a gold–dielectric mixture);
+4. refits each candidate's shared parameters on all samples of its texels (Levenberg–Marquardt per
+   candidate, albedo held); steps 2–4 run ``rounds`` times.
 
 Anchors keep their own fit. Measured on the default scene (docs/reconstruction.md, "Reflectance
 sharing" and "Session 4"): RMSE on all observed texels albedo / f0 / roughness 0.0805 / 0.1963 / 0.1892
@@ -48,6 +54,12 @@ from materials.model import Model
 from .observations import Observations
 
 __all__ = ["share_materials", "unmatched_texels", "kmeans_pp"]
+
+
+#: χ² evidence (summed over the texels that prefer it, :func:`_supported`) below which a candidate material is
+#: dropped: 10 texels' worth of the assignment's evidence margin. Measured: duplicates and border mixtures 0–82,
+#: real materials ≥ 502 (docs/reconstruction.md, "Session 6").
+MIN_EVIDENCE = 100.0
 
 
 def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, iterations: int = 50) -> Tensor:
@@ -157,6 +169,31 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, ca
     return label, scale
 
 
+def _supported(costs: Tensor, own: Tensor, cap: float | None, residuals: Tensor | None,
+               min_evidence: float) -> Tensor:
+    """``[K]`` bool: the candidates the photos need, by backward elimination.
+
+    A candidate's *evidence* is what the texels that prefer it would lose without it: the sum over the
+    texels with samples of their own (``own``) whose best candidate it is of their excess χ² (:func:`_excess`,
+    data only, misfit-deflated) at the second best, each capped at ``cap`` as in :func:`_assign`. The candidate
+    with the least evidence is dropped while that is below ``min_evidence``, and the evidence recomputed — so of
+    two duplicates (evidence 0 each) one goes and the other then holds their texels' evidence.
+    """
+    K = costs.shape[0]
+    excess = _excess(costs, residuals)
+    alive = torch.ones(K, dtype=torch.bool, device=costs.device)
+    while int(alive.sum()) > 1:
+        two = excess.masked_fill(~alive[:, None], math.inf).topk(2, 0, largest=False)
+        gain = (two.values[1] - two.values[0]).clamp_max(math.inf if cap is None else cap)
+        ev = torch.zeros(K, dtype=excess.dtype, device=costs.device).index_add(0, two.indices[0][own], gain[own])
+        ev = ev.masked_fill(~alive, math.inf)
+        j = int(ev.argmin())
+        if float(ev[j]) >= min_evidence:
+            break
+        alive[j] = False
+    return alive
+
+
 def _albedo_prior(albedo: Tensor, anchors: Tensor, anchor_label: Tensor, own: Tensor,
                   floor: float = 0.02, min_anchors: int = 3) -> Tensor:
     """``[K, T]`` χ²-like cost of each texel's albedo under each candidate against that material's albedo.
@@ -183,7 +220,8 @@ def _albedo_prior(albedo: Tensor, anchors: Tensor, anchor_label: Tensor, own: Te
 def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anchors: Tensor, *,
                     candidates: int = 8, rounds: int = 2, refit_iterations: int = 5, evidence: float = 10.0,
                     cap: float | None = 15.0, misfit: bool = True, albedo_prior: float = 1.0, prior_cap: float = 15.0,
-                    noise: tuple[float, float] = (0.01, 0.1), seed: int = 0) -> tuple[Tensor, dict]:
+                    min_evidence: float = MIN_EVIDENCE, noise: tuple[float, float] = (0.01, 0.1),
+                    seed: int = 0) -> tuple[Tensor, dict]:
     """Replace the shared parameters of every observed texel by those of one of a few materials.
 
     Args:
@@ -197,6 +235,11 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         cap, misfit: the per-texel cap on a box's evidence and the misfit deflation of :func:`_assign`.
         albedo_prior, prior_cap: weight of the materials' albedo prior (:func:`_albedo_prior`; 0 = off)
             and the cap on its cost — a texel that no material's albedo fits is left to the photos.
+        min_evidence: χ² a candidate's texels must lose without it for it to stay (:func:`_supported`,
+            :data:`MIN_EVIDENCE`); 0 = keep every candidate. Measured (default scene's rig, RMSE on all observed
+            texels albedo / f0 / roughness): 3 materials 0.0120 / 0.0834 / 0.0858 → 0.0081 / 0.0108 / 0.0160,
+            2 materials 0.0049 / 0.0025 / 0.0241 → 0.0044 / 0.0023 / 0.0112, 6 materials unchanged (every
+            candidate needed); docs/reconstruction.md, "Session 6", for the small scenes.
         evidence: χ² margin (noise model ``noise``) by which the best candidate must beat the second
             best before a texel is decided at a scale; candidates its own samples put further than
             this above their best are never assigned to it.
@@ -208,8 +251,8 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         albedo re-solved in closed form, except at the anchors, which keep their own fit; ``info``
         has ``materials`` (canonical values of each), ``labels`` ``[T]`` (−1 where unobserved),
         ``material_cost`` ``[T]`` (χ² of each texel's own samples under its material, nearest texel; for
-        :func:`unmatched_texels`), ``decided_at`` (texel counts per box size), ``share_s`` and the shared
-        parameter names.
+        :func:`unmatched_texels`), ``decided_at`` (texel counts per box size), ``pruned`` (candidates
+        dropped for lack of support), ``share_s`` and the shared parameter names.
         Unchanged θ (``info["materials"] = []``) when the model has nothing to share or there are
         no anchors.
     """
@@ -259,6 +302,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     kmeans_label = torch.cdist(feats, centres / thr).argmin(1)
     scale = torch.zeros(T, dtype=torch.long, device=dev)
     decided = {}
+    pruned = 0
     with torch.no_grad():
         for rnd in range(rounds):
             costs, albedo = [], []
@@ -268,7 +312,21 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                 cand, cost = _linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
                 costs.append(cost)
                 albedo.append(cand)
-            cands = torch.stack(albedo)                                               # [K, T, P]
+            cands, costs = torch.stack(albedo), torch.stack(costs)                   # [K, T, P], [K, T]
+            if min_evidence > 0:
+                alive = _supported(costs, observed & own, cap, residuals if misfit else None, min_evidence)
+                if not bool(alive.all()):
+                    # a material the photos do not need exists only to absorb weakly observed texels: a duplicate,
+                    # a spare k-means cluster of border mixtures. Drop it; the anchors it held (k-means labels) and
+                    # the last round's labels move to their best remaining candidate
+                    keep = alive.nonzero()[:, 0]
+                    pruned += int(K - keep.numel())
+                    remap = torch.full((K,), -1, dtype=torch.long, device=dev)
+                    remap[keep] = torch.arange(keep.numel(), device=dev)
+                    K, costs, cands, mat = keep.numel(), costs[keep], cands[keep], mat[keep]
+                    nearest = costs.argmin(0)
+                    kmeans_label = torch.where(remap[kmeans_label] >= 0, remap[kmeans_label], nearest[anchors])
+                    label = torch.where(remap[label] >= 0, remap[label], nearest)
             prior = None
             if albedo_prior > 0:
                 # the albedo statistics come from the anchors (labelled by k-means) and, after the first
@@ -282,8 +340,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                     a_lab[anchors[stat_set]] = kmeans_label
                 prior = (albedo_prior * _albedo_prior(layout.unpack(cands)[per_texel[0].name], stat_set, a_lab, own)
                          ).clamp_max(prior_cap)
-            label, scale = _assign(torch.stack(costs), observed, H, W, evidence, cap, residuals if misfit else None,
-                                   prior)
+            label, scale = _assign(costs, observed, H, W, evidence, cap, residuals if misfit else None, prior)
             theta = cands[label, torch.arange(T, device=dev)]
             del albedo
             decided = {int(x): int((scale == x).sum()) for x in scale[observed].unique()}
@@ -302,7 +359,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     mats = layout.unpack(mat)
     info.update(materials=[{s.name: mats[s.name][k].tolist() for s in shared} for k in range(K)], labels=lab,
                 material_cost=material_cost, decided_at=decided,
-                texels_per_material=torch.bincount(label[observed], minlength=K).tolist(),
+                texels_per_material=torch.bincount(label[observed], minlength=K).tolist(), pruned=pruned,
                 share_s=time.perf_counter() - t0)
     return theta, info
 

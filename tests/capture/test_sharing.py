@@ -6,7 +6,16 @@ import torch.nn.functional as F
 
 import materials
 from capture.observations import synthetic_observations
-from capture.sharing import _albedo_prior, _assign, _box_sum, _excess, kmeans_pp, share_materials, unmatched_texels
+from capture.sharing import (
+    _albedo_prior,
+    _assign,
+    _box_sum,
+    _excess,
+    _supported,
+    kmeans_pp,
+    share_materials,
+    unmatched_texels,
+)
 from capture.solvers import Layout, SolverError, _SharingPrior, robust_rho, solve_fast
 
 
@@ -126,6 +135,45 @@ def test_unmatched_texels_are_those_whose_photos_reject_every_material():
                                                                               int(un[cols >= 8].sum()))
     with pytest.raises(ValueError, match="share_materials"):
         unmatched_texels(model, obs, layout, theta, {"labels": info["labels"]})
+
+
+def test_supported_drops_duplicates_and_materials_few_texels_need():
+    # 10 texels prefer candidates 0 and 1 (duplicates) by 20 over candidate 2; n texels prefer 2 by 30.
+    # Evidence (each texel capped at 15): duplicates 0 each → one goes, the other then holds 10 × 15 = 150;
+    # candidate 2 holds n × 15: 3 texels (45) are not enough for 100, 8 (120) are
+    def costs(n):
+        c = torch.zeros(3, 10 + n, dtype=torch.float64)
+        c[2, :10] = 20.0
+        c[:2, 10:] = 30.0
+        return c
+
+    own = torch.ones(13, dtype=torch.bool)
+    assert _supported(costs(3), own, 15.0, None, 100.0).tolist() == [False, True, False]
+    assert _supported(costs(8), torch.ones(18, dtype=torch.bool), 15.0, None, 100.0).tolist() == [False, True, True]
+    assert _supported(costs(3), own, 15.0, None, 0.0).tolist() == [True, True, True]
+    # without the cap the 3 texels' 90 would still fall short; texels without samples of their own count nothing
+    assert _supported(costs(3), own, None, None, 100.0).tolist() == [False, True, False]
+    no_own = own.clone()
+    no_own[:10] = False
+    assert _supported(costs(3), no_own, 15.0, None, 40.0).tolist() == [False, False, True]
+
+
+def test_share_materials_drops_unneeded_candidates():
+    model = _ggx_lambert()
+    gt = _two_material_scene()
+    obs = synthetic_observations(model, gt, samples_per_texel=12, highlight_fraction=0.34, seed=1)
+    layout = Layout.of(model)
+    fit = solve_fast(model, obs, share=False)
+    anchors = (~fit.unobservable["f0"] & ~fit.unobservable["roughness"]).reshape(-1)
+    theta = layout.pack({k: v.reshape(-1, v.shape[-1]).double() for k, v in fit.raw.items()})
+    # 4 candidates for 2 materials: k-means spends the spare on an outlying anchor (measured: roughness 0.189,
+    # f0 0.01) that takes no texel; it is dropped, the 2 that survive are the truth
+    _, info = share_materials(model, obs, layout, theta, anchors, candidates=4)
+    assert info["pruned"] == 1 and info["texels_per_material"] == [128, 128], info["texels_per_material"]
+    got = sorted(round(m["roughness"][0], 3) for m in info["materials"])
+    assert got == [0.3, 0.5], got
+    _, info_all = share_materials(model, obs, layout, theta, anchors, candidates=4, min_evidence=0.0)
+    assert info_all["pruned"] == 0 and len(info_all["materials"]) == 3 and 0 in info_all["texels_per_material"]
 
 
 def test_share_materials_leaves_models_without_shared_parameters_alone():
