@@ -252,7 +252,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         has ``materials`` (canonical values of each), ``labels`` ``[T]`` (−1 where unobserved),
         ``material_cost`` ``[T]`` (χ² of each texel's own samples under its material, nearest texel; for
         :func:`unmatched_texels`), ``decided_at`` (texel counts per box size), ``pruned`` (candidates
-        dropped for lack of support), ``share_s`` and the shared parameter names.
+        the photos did not need, :func:`_supported`), ``share_s`` and the shared parameter names.
         Unchanged θ (``info["materials"] = []``) when the model has nothing to share or there are
         no anchors.
     """
@@ -268,6 +268,9 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     if candidates < 1 or rounds < 1 or refit_iterations < 0 or not (evidence >= 0 and math.isfinite(evidence)):
         raise ValueError(f"share_materials: need candidates ≥ 1, rounds ≥ 1, refit_iterations ≥ 0 and a finite "
                          f"evidence ≥ 0, got {candidates}, {rounds}, {refit_iterations}, {evidence}")
+    if not (min_evidence >= 0 and math.isfinite(min_evidence)):
+        raise ValueError(f"share_materials: min_evidence must be a finite χ² ≥ 0 (0 keeps every candidate), "
+                         f"got {min_evidence!r}")
     T, P = theta.shape
     H, W = obs.map_size
     dev = theta.device
@@ -368,7 +371,8 @@ def unmatched_texels(model: Model, obs: Observations, layout, theta: Tensor, inf
                      noise: tuple[float, float] = (0.01, 0.1)) -> Tensor:
     """``[T]`` bool: texels whose own per-texel fit ``theta`` beats their shared material by more than
     ``evidence`` χ² (noise model ``noise``; albedo re-solved in closed form for both, nearest texel) — the
-    photos reject every candidate there, e.g. a metal when no metal material was found.
+    photos reject the material the texel was given, e.g. a dielectric on a metal when no metal material was
+    found.
 
     ``info`` is :func:`share_materials`'s (its ``material_cost`` and ``labels``). The difference is divided
     by the misfit s² = max(1, χ²_best / residuals) as in :func:`_assign`. On the default scene (a good
@@ -380,6 +384,10 @@ def unmatched_texels(model: Model, obs: Observations, layout, theta: Tensor, inf
 
     if "material_cost" not in info:
         raise ValueError("unmatched_texels: info must come from share_materials (it has no 'material_cost')")
+    if theta.dim() != 2 or theta.shape[0] != obs.n_texels or info["material_cost"].shape != (obs.n_texels,):
+        raise ValueError(f"unmatched_texels: theta must be [T, P] and info from share_materials on the same "
+                         f"observations (T = {obs.n_texels}), got theta {tuple(theta.shape)} and material_cost "
+                         f"{tuple(info['material_cost'].shape)}")
     per_texel = [s for s in layout.specs if s.name == "albedo" and s.linear]
     sep = {s.name: s.channels == 3 and _separable(model, s, obs.dtype) for s in per_texel}
     chi = _chi2_observations(obs, noise)

@@ -1014,7 +1014,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             # did, the materials miss part of the object (a layered scene whose metals gave no anchor: every metal
             # texel took a dielectric, worst view 27 dB): the texels whose own samples reject their material
             # keep their own fit, the refinement runs again, and the lower data cost wins
-            texel_cost = data_cost(model, layout, obs, theta_texel, sampling=sampling, loss=loss, delta=delta)
+            texel_cost = _data_cost(model, layout, obs, theta_texel, sampling=sampling, loss=loss, delta=delta)
             if jinfo["joint_data_cost"] > texel_cost:
                 from .sharing import unmatched_texels
                 own = unmatched_texels(model, obs, layout, theta_texel, sinfo, noise=noise)
@@ -1351,7 +1351,7 @@ def _weighted_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> 
     return float((robust_rho(obs.radiance.to(ACC) - pred.to(ACC), loss, delta).sum(-1) * obs.weight.to(ACC)).sum())
 
 
-def data_cost(model: Model, layout: Layout, obs: Observations, theta: Tensor, *, sampling: str, loss: str,
+def _data_cost(model: Model, layout: Layout, obs: Observations, theta: Tensor, *, sampling: str, loss: str,
               delta: float) -> float:
     """The data term of θ ``[T, P]`` under ``sampling`` ("nearest" | "bilinear"), per residual (3 · Σ weight)."""
     with torch.no_grad():

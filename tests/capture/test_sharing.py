@@ -135,6 +135,8 @@ def test_unmatched_texels_are_those_whose_photos_reject_every_material():
                                                                               int(un[cols >= 8].sum()))
     with pytest.raises(ValueError, match="share_materials"):
         unmatched_texels(model, obs, layout, theta, {"labels": info["labels"]})
+    with pytest.raises(ValueError, match="same observations"):
+        unmatched_texels(model, obs, layout, theta[:10], info)
 
 
 def test_supported_drops_duplicates_and_materials_few_texels_need():
@@ -247,6 +249,11 @@ def test_share_option_validation():
         solve_fast(model, obs, sharing=-1.0)
     with pytest.raises(SolverError, match="sharing_albedo must be True or False"):
         solve_fast(model, obs, sharing_albedo="no")
+    layout = Layout.of(model)
+    theta = layout.pack({k: v.reshape(-1, v.shape[-1]) for k, v in gt.items()})
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="min_evidence must be a finite"):
+            share_materials(model, obs, layout, theta, torch.ones(256, dtype=torch.bool), min_evidence=bad)
 
 
 def test_albedo_prior_by_hand():
