@@ -115,14 +115,20 @@ def test_share_materials_recovers_unobservable_texels_from_their_material():
     assert sum(info["texels_per_material"]) == 256
 
 
-def test_unmatched_texels_are_those_whose_photos_reject_every_material():
+def _two_material_fit():
+    """The two-material scene's observations (a third of the samples near the mirror direction) and its
+    per-texel fit: ``(model, obs, layout, theta [256, P], anchors [256])``."""
     model = _ggx_lambert()
-    gt = _two_material_scene()
-    obs = synthetic_observations(model, gt, samples_per_texel=12, highlight_fraction=0.34, seed=1)
+    obs = synthetic_observations(model, _two_material_scene(), samples_per_texel=12, highlight_fraction=0.34, seed=1)
     layout = Layout.of(model)
     fit = solve_fast(model, obs, share=False)
     anchors = (~fit.unobservable["f0"] & ~fit.unobservable["roughness"]).reshape(-1)
     theta = layout.pack({k: v.reshape(-1, v.shape[-1]).double() for k, v in fit.raw.items()})
+    return model, obs, layout, theta, anchors
+
+
+def test_unmatched_texels_are_those_whose_photos_reject_their_material():
+    model, obs, layout, theta, anchors = _two_material_fit()
     _, info = share_materials(model, obs, layout, theta, anchors, candidates=4)
     assert not bool(unmatched_texels(model, obs, layout, theta, info).any())       # both materials found
     # no anchor among the metal's texels (as on a layered scene whose metals' base lobe is never determined): only
@@ -161,13 +167,7 @@ def test_supported_drops_duplicates_and_materials_few_texels_need():
 
 
 def test_share_materials_drops_unneeded_candidates():
-    model = _ggx_lambert()
-    gt = _two_material_scene()
-    obs = synthetic_observations(model, gt, samples_per_texel=12, highlight_fraction=0.34, seed=1)
-    layout = Layout.of(model)
-    fit = solve_fast(model, obs, share=False)
-    anchors = (~fit.unobservable["f0"] & ~fit.unobservable["roughness"]).reshape(-1)
-    theta = layout.pack({k: v.reshape(-1, v.shape[-1]).double() for k, v in fit.raw.items()})
+    model, obs, layout, theta, anchors = _two_material_fit()
     # 4 candidates for 2 materials: k-means spends the spare on an outlying anchor (measured: roughness 0.189,
     # f0 0.01) that takes no texel; it is dropped, the 2 that survive are the truth
     _, info = share_materials(model, obs, layout, theta, anchors, candidates=4)
