@@ -799,9 +799,10 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             A safeguard: when the refinement the sharing seeds ends with a higher data cost than the per-texel fit
             it started from, a material is missing (no texel determined it); the texels whose own samples reject
             their material (:func:`capture.sharing.unmatched_texels`) keep their own fit, the refinement runs
-            again and the lower data cost wins (``info["sharing_fallback"]``). Layered scene of 128 px, 64² maps:
-            data cost 0.039 → 0.0009 (per-texel fit 0.0049), worst / mean view 27.4 / 34.2 → 39.5 / 49.3 dB with
-            the scalars' fix; never triggered on the GGX + Lambert scenes of docs/reconstruction.md.
+            again and the lower data cost wins (``info["sharing_fallback"]``). Layered scene of 128 px, 64² maps,
+            coat given: data cost 0.024 → 0.0009 (per-texel fit 0.0049); with the coat fitted, worst / mean view
+            27.4 / 34.2 dB in session 5 → 40.1 / 46.5 dB (docs/reconstruction.md, "Session 6"); never triggered on
+            the GGX + Lambert scenes there.
         sharing_albedo: the joint refinement's prior links neighbouring texels' albedo too (default; see
             :func:`refine_joint` for the measurements). Where the photos determine a texel's albedo the data win;
             where they barely do (texels read only through a neighbour's bilinear footprint, the grazing band) it
