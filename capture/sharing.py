@@ -98,6 +98,15 @@ def _chi2_observations(obs: Observations, noise: tuple[float, float]) -> Observa
     return replace(obs, weight=(obs.weight.double() / sig2).to(obs.weight.dtype))
 
 
+def _per_texel_specs(model: Model, layout, dtype) -> tuple[list, dict[str, bool]]:
+    """The parameters each texel keeps of its own (the diffuse albedo, when it enters linearly) and, for
+    :func:`capture.solvers._linear_solve`, whether each is a separable RGB parameter."""
+    from .solvers import _separable
+
+    per_texel = [s for s in layout.specs if s.name == "albedo" and s.linear]
+    return per_texel, {s.name: s.channels == 3 and _separable(model, s, dtype) for s in per_texel}
+
+
 def _box_sum(x: Tensor, s: int) -> Tensor:
     """Sum of ``x [K, H, W]`` over the s×s box (s odd) centred on each texel, zero outside (integral image)."""
     K, H, W = x.shape
@@ -256,13 +265,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         Unchanged θ (``info["materials"] = []``) when the model has nothing to share or there are
         no anchors.
     """
-    from .solvers import (
-        ACC,
-        _groups,
-        _linear_solve,
-        _separable,
-        std_threshold,
-    )
+    from .solvers import ACC, _groups, _linear_solve, std_threshold
 
     t0 = time.perf_counter()
     if candidates < 1 or rounds < 1 or refit_iterations < 0 or not (evidence >= 0 and math.isfinite(evidence)):
@@ -274,7 +277,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     T, P = theta.shape
     H, W = obs.map_size
     dev = theta.device
-    per_texel = [s for s in layout.specs if s.name == "albedo" and s.linear]
+    per_texel, sep = _per_texel_specs(model, layout, obs.dtype)
     shared = [s for s in layout.specs if s not in per_texel]
     info = {"materials": [], "shared": [s.name for s in shared], "share_s": 0.0}
     observed = obs.footprint()
@@ -296,7 +299,6 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         mat[:, layout.cols(s.name)] = _from_canon(s, centres[:, off:off + s.channels])
         off += s.channels
     chi = _chi2_observations(obs, noise)
-    sep = {s.name: s.channels == 3 and _separable(model, s, obs.dtype) for s in per_texel}
     groups = [(c, d) for c, d in _groups(model, layout, obs.dtype) if all(x in scols for x in c)]
     y, w = chi.radiance.to(ACC), chi.weight.to(ACC)
     label = torch.zeros(T, dtype=torch.long, device=dev)
@@ -380,7 +382,7 @@ def unmatched_texels(model: Model, obs: Observations, layout, theta: Tensor, inf
     absorbs the bilinear mixing, and the roughness gradient; on a layered scene whose metals gave no
     anchor, 37 %. :func:`capture.solvers.solve_fast` uses them only when the sharing has failed.
     """
-    from .solvers import _linear_solve, _separable
+    from .solvers import _linear_solve
 
     if "material_cost" not in info:
         raise ValueError("unmatched_texels: info must come from share_materials (it has no 'material_cost')")
@@ -388,8 +390,7 @@ def unmatched_texels(model: Model, obs: Observations, layout, theta: Tensor, inf
         raise ValueError(f"unmatched_texels: theta must be [T, P] and info from share_materials on the same "
                          f"observations (T = {obs.n_texels}), got theta {tuple(theta.shape)} and material_cost "
                          f"{tuple(info['material_cost'].shape)}")
-    per_texel = [s for s in layout.specs if s.name == "albedo" and s.linear]
-    sep = {s.name: s.channels == 3 and _separable(model, s, obs.dtype) for s in per_texel}
+    per_texel, sep = _per_texel_specs(model, layout, obs.dtype)
     chi = _chi2_observations(obs, noise)
     with torch.no_grad():
         _, own_cost = _linear_solve(model, layout, chi, theta, per_texel, sep, "l2", 1.0)

@@ -984,7 +984,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         theta_texel = theta
         theta, sinfo = share_materials(model, obs, layout, theta, anchors, candidates=candidates, noise=noise)
         info.update(share_s=sinfo["share_s"], materials=sinfo["materials"], shared=sinfo["shared"],
-                    share_anchors=int(anchors.sum()))
+                    share_anchors=int(anchors.sum()), share_pruned=sinfo.get("pruned", 0))
         if progress is not None:
             progress("share", it, history[-1])
         # nothing to share from (no texel determined the shared parameters, or the model has none):
