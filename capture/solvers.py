@@ -321,9 +321,15 @@ def _jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, grou
     return pred.to(ACC), J
 
 
+def _sample_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> Tensor:
+    """``[S]`` per-sample data term ``weight_s Σ_c ρ(y_sc − pred_sc)`` (``pred`` ``[S, 3]``) — what every solver
+    minimises, per texel (:func:`_texel_cost`) or in total (:func:`_weighted_cost`)."""
+    return robust_rho(obs.radiance.to(ACC) - pred.to(ACC), loss, delta).sum(-1) * obs.weight.to(ACC)
+
+
 def _texel_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> Tensor:
-    rho = robust_rho(obs.radiance.to(ACC) - pred.to(ACC), loss, delta).sum(-1) * obs.weight.to(ACC)
-    return torch.zeros(obs.n_texels, dtype=ACC, device=pred.device).index_add(0, obs.texel, rho)
+    return torch.zeros(obs.n_texels, dtype=ACC, device=pred.device).index_add(
+        0, obs.texel, _sample_cost(obs, pred, loss, delta))
 
 
 def _neighbour_sum(theta: Tensor, H: int, W: int, valid: Tensor) -> tuple[Tensor, Tensor]:
@@ -1348,8 +1354,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
 
 
 def _weighted_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> float:
-    """``Σ_s weight_s Σ_c ρ(y_sc − pred_sc)`` — the data term every solver minimises (``pred`` ``[S, 3]``)."""
-    return float((robust_rho(obs.radiance.to(ACC) - pred.to(ACC), loss, delta).sum(-1) * obs.weight.to(ACC)).sum())
+    """The total data term ``Σ_s weight_s Σ_c ρ(y_sc − pred_sc)`` (:func:`_sample_cost`)."""
+    return float(_sample_cost(obs, pred, loss, delta).sum())
 
 
 def _data_cost(model: Model, layout: Layout, obs: Observations, theta: Tensor, *, sampling: str, loss: str,
