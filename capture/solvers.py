@@ -743,9 +743,10 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                iterations: int | None = None, grid: int | None = None, refine: int = 3, schedule: str = "joint",
                smoothness: float = 0.0, init: Mapping[str, Tensor] | None = None, tol: float = 1e-10,
                observable_std: float | Mapping[str, float] | None = None, noise=NOISE, reproject: int = 0,
-               sampling: str = "nearest", joint_iterations: int = 3, cg_iterations: int = 25,
+               sampling: str = "nearest", joint_iterations: int | None = None, cg_iterations: int | None = None,
                fill_before_joint: bool = True, share: bool | None = None, candidates: int = 8, sharing: float = 1.0,
-               sharing_albedo: bool = True, progress: Callable[[str, int, float], None] | None = None) -> FitResult:
+               sharing_albedo: bool = True, anchor_weight: float = 0.03,
+               progress: Callable[[str, int, float], None] | None = None) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
     Objective: ``Σ_s weight_s Σ_c ρ(y_sc − L_sc)`` with nearest-texel sampling (each sample reads
@@ -782,10 +783,15 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         sampling: "nearest" (texels independent: per-texel LM is exact) or "bilinear" (the photos
             read four texels per sample: the per-texel LM — with nearest sampling — initialises
             :func:`refine_joint`, ``joint_iterations`` joint LM steps with ``cg_iterations`` PCG
-            iterations each). 3 joint steps (2 before session 4, when a step cost twice as much): on the
-            default scene RMSE on all observed texels 0.0155 / 0.0165 / 0.0557 → 0.0161 / 0.0159 / 0.0532,
-            on observable ones 0.0006 / 0.0044 / 0.0020 → 0.0005 / 0.0017 / 0.0018, +1.5 s; 4 steps:
-            0.0165 / 0.0160 / 0.0519 and 0.0004 / 0.0013 / 0.0018 for another +1.5 s.
+            iterations each). None = 6 steps × 30 CG iterations with the sharing (whose proposal prior,
+            ``anchor_weight``, makes more steps safe), 3 × 25 without it. Measured on the default scene without
+            the sharing (session 4): 2 → 3 steps all-texel RMSE 0.0155 / 0.0165 / 0.0557 → 0.0161 / 0.0159 / 0.0532;
+            with it (session 7) 3 × 25 without the anchor 0.0089 / 0.0159 / 0.0531 (observable 0.0005 / 0.0017 /
+            0.0018), 6 × 30 with it 0.0088 / 0.0134 / 0.0515 (0.0004 / 0.0011 / 0.0015), +2–3 s.
+        anchor_weight: weight of the joint refinement's tie of each texel's material parameters to the sharing's
+            proposal (:func:`refine_joint`; relative to the neighbour prior's data scale; 0 = off, only with the
+            sharing). 0.03: the best of 0.01 / 0.03 / 0.1 on the default scene (6 × 50 steps: f0 0.0171 / 0.0139 /
+            0.0125, roughness 0.0484 / 0.0510 / 0.0571); without it the f0 there drifts to 0.0326.
         fill_before_joint: before the joint refinement, replace the parameters that are unobservable in a texel
             by pull-push fills of the observable ones (default). Measured on the default scene (2 joint
             iterations): without the fill the RMSE on observable texels is 0.0032 / 0.0103 / 0.0395 (albedo / f0 /
@@ -831,8 +837,13 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         raise SolverError(f"smoothness must be ≥ 0, got {smoothness!r}")
     if iterations is None:
         iterations = 10 if sampling == "bilinear" else 40
-    joint = sampling == "bilinear" and joint_iterations > 0
+    for name, n in (("joint_iterations", joint_iterations), ("cg_iterations", cg_iterations)):
+        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
+            raise SolverError(f"{name} must be an integer ≥ 0 or None (the default), got {n!r}")
+    joint = sampling == "bilinear" and joint_iterations != 0
     share = joint if share is None else bool(share)
+    if not (anchor_weight >= 0 and math.isfinite(anchor_weight)):
+        raise SolverError(f"anchor_weight must be a finite weight ≥ 0 (0 = off), got {anchor_weight!r}")
     if grid is None:
         grid = 16 if share else 32
     if not (sharing >= 0 and math.isfinite(sharing)):
@@ -1007,12 +1018,17 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                 filled_c = pull_push(canon[:, sl].reshape(H, W, -1), ok).reshape(T, -1)
                 theta[:, sl] = from_canonical(s_, filled_c)
     if joint:
+        # more steps are safe once the sharing's proposal anchors the material parameters (anchor_weight)
+        steps = joint_iterations if joint_iterations is not None else (6 if share else 3)
+        cg_steps = cg_iterations if cg_iterations is not None else (30 if share else 25)
+
         def joint_from(start):
             return refine_joint(model, obs, layout, start, groups, loss=loss, delta=delta,
-                                iterations=joint_iterations, cg_iterations=cg_iterations,
+                                iterations=steps, cg_iterations=cg_steps,
                                 sharing=sharing if share else 0.0, progress=progress,
                                 sharing_params=None if sharing_albedo else _shared_default(layout),
-                                noise=noise, noise_adaptive=("albedo",))
+                                noise=noise, noise_adaptive=("albedo",),
+                                anchor_weight=anchor_weight if share else 0.0)
 
         shared_start = theta
         theta, jinfo = joint_from(shared_start)
@@ -1061,10 +1077,20 @@ class _SharingPrior:
     Huber cost of :func:`robust_rho` with scale δ: quadratic — smoothing — for differences below δ units
     (smooth gradients of a material), linear beyond (region borders keep their jump). Gauss-Newton enters it
     through IRLS weights.
+
+    Optionally (:meth:`set_anchor`) a second, unary term ``ν Σ_i Σ_c ρ_H((p_ic − m_ic) / t_c)`` ties the
+    material parameters to a proposal ``m`` (the sharing's materials): see ``anchor_weight`` of
+    :func:`refine_joint`.
+
+    The texels form the ``H × W`` grid of the maps, so the differences are taken on that grid by slicing
+    (measured on the default scene, 65 536 texels, 7 channels, 2 threads: 4 ms per product against 16 ms with
+    index lists of the 101 122 edges).
     """
 
     def __init__(self, layout: Layout, names: Sequence[str], H: int, W: int, observed: Tensor, delta: float):
         self.cols = [c for n in names for c in layout.cols(n)]
+        self.every_column = self.cols == list(range(layout.P))
+        self.P = layout.P
         # the columns whose data curvature sets μ (refine_joint): those of the material parameters when the
         # prior has any. The albedo's curvature is larger (a texel's colour is seen wherever the texel is), and
         # calibrating on it too raised μ for every parameter (default scene, albedo in units of 0.01: f0 0.0171
@@ -1076,15 +1102,20 @@ class _SharingPrior:
         spec = {s.name: s for s in layout.specs}
         self.col_names = col_names
         self.thr = torch.tensor([PRIOR_UNIT.get(n, std_threshold(spec[n])) for n in col_names], dtype=ACC, device=dev)
-        ids = torch.arange(H * W, device=dev).reshape(H, W)
         ok = observed.reshape(H, W)
-        pairs = [(ids[:, :-1][ok[:, :-1] & ok[:, 1:]], ids[:, 1:][ok[:, :-1] & ok[:, 1:]]),
-                 (ids[:-1][ok[:-1] & ok[1:]], ids[1:][ok[:-1] & ok[1:]])]
-        self.a = torch.cat([x for x, _ in pairs])
-        self.b = torch.cat([y for _, y in pairs])
+        self.H, self.W = H, W
+        # 1 on the edges between two observed texels: along u (row-wise) [H, W−1, 1] and along v [H−1, W, 1]
+        self.edge_u = (ok[:, :-1] & ok[:, 1:]).to(ACC)[..., None]
+        self.edge_v = (ok[:-1] & ok[1:]).to(ACC)[..., None]
         self.delta = float(delta)
         self.mu = 0.0
         self.omega = None
+        self.target = None           # [T, C] canonical proposal of the unary term (set_anchor)
+        self.anchored = None         # [C] 1 on the columns it ties
+        self.anchor_weight = 0.0
+        self.anchor_delta = 1.0
+        self.nu = 0.0
+        self.omega_u = None
 
     def set_units(self, units: Mapping[str, float]) -> None:
         """Replace the units of the parameters in ``units`` (name → unit)."""
@@ -1092,38 +1123,82 @@ class _SharingPrior:
             if n in units:
                 self.thr[i] = float(units[n])
 
-    def _diff(self, canon: Tensor) -> Tensor:
-        c = canon[:, self.cols] / self.thr
-        return c[self.a] - c[self.b]                                               # [E, C]
+    def set_anchor(self, names: Sequence[str], canon: Tensor, weight: float, delta: float) -> None:
+        """Tie the prior's columns of the parameters ``names`` to their values in ``canon`` ``[T, P]`` (canonical):
+        weight ``weight`` × the data-calibrated scale (ν = weight · μ / sharing, set by :func:`refine_joint`),
+        Huber scale ``delta`` units."""
+        self.target = self._columns(canon).clone()
+        self.anchored = torch.tensor([float(n in set(names)) for n in self.col_names], dtype=ACC,
+                                     device=canon.device)
+        self.anchor_weight, self.anchor_delta = float(weight), float(delta)
+
+    def _columns(self, x: Tensor) -> Tensor:
+        return x if self.every_column else x[:, self.cols]
+
+    def _full(self, x: Tensor) -> Tensor:
+        if self.every_column:
+            return x
+        out = torch.zeros(x.shape[0], self.P, dtype=x.dtype, device=x.device)
+        out[:, self.cols] = x
+        return out
+
+    def _diff(self, canon: Tensor) -> tuple[Tensor, Tensor]:
+        """Neighbour differences in units: along u ``[H, W−1, C]`` and along v ``[H−1, W, C]`` (all pairs; the
+        edges that count are :attr:`edge_u`, :attr:`edge_v`)."""
+        c = (self._columns(canon) / self.thr).reshape(self.H, self.W, -1)
+        return c[:, :-1] - c[:, 1:], c[:-1] - c[1:]
+
+    def _anchor_diff(self, canon: Tensor) -> Tensor:
+        return (self._columns(canon) - self.target) / self.thr * self.anchored
+
+    def energy_tensor(self, canon: Tensor) -> Tensor:
+        """The prior's energy at ``canon`` ``[T, P]`` as a (differentiable) scalar tensor."""
+        du, dv = self._diff(canon)
+        e = self.mu * ((robust_rho(du, "huber", self.delta) * self.edge_u).sum()
+                       + (robust_rho(dv, "huber", self.delta) * self.edge_v).sum())
+        if self.target is not None and self.nu > 0:
+            e = e + self.nu * robust_rho(self._anchor_diff(canon), "huber", self.anchor_delta).sum()
+        return e
 
     def energy(self, canon: Tensor) -> float:
-        return self.mu * float(robust_rho(self._diff(canon), "huber", self.delta).sum())
+        return float(self.energy_tensor(canon))
 
     def linearise(self, canon: Tensor, dp: Tensor) -> tuple[Tensor, Tensor]:
         """IRLS weights at ``canon``; returns (descent gradient [T, P] in θ, preconditioner diagonal [T, P])."""
-        d = self._diff(canon)
-        self.omega = self.mu * _irls(d, "huber", self.delta)                         # [E, C]
-        T, P = canon.shape
-        f = self.omega * d
-        g = torch.zeros(T, len(self.cols), dtype=ACC, device=canon.device)
-        g.index_add_(0, self.a, -f).index_add_(0, self.b, f)
-        scale = dp[:, self.cols] / self.thr
-        grad = torch.zeros(T, P, dtype=ACC, device=canon.device)
-        grad[:, self.cols] = g * scale
-        deg = torch.zeros(T, len(self.cols), dtype=ACC, device=canon.device)
-        deg.index_add_(0, self.a, self.omega).index_add_(0, self.b, self.omega)
-        diag = torch.zeros(T, P, dtype=ACC, device=canon.device)
-        diag[:, self.cols] = deg * scale.square()
-        return grad, diag
+        du, dv = self._diff(canon)
+        wu = self.mu * _irls(du, "huber", self.delta) * self.edge_u
+        wv = self.mu * _irls(dv, "huber", self.delta) * self.edge_v
+        self.omega = (wu, wv)
+        g = self._spread(wu * du, wv * dv, -1.0)
+        deg = self._spread(wu, wv, 1.0, same_sign=True)
+        if self.target is not None and self.nu > 0:
+            da = self._anchor_diff(canon)
+            self.omega_u = self.nu * _irls(da, "huber", self.anchor_delta) * self.anchored
+            g = g - self.omega_u * da
+            deg = deg + self.omega_u
+        scale = self._columns(dp) / self.thr
+        return self._full(g * scale), self._full(deg * scale.square())
+
+    def _spread(self, fu: Tensor, fv: Tensor, sign: float, same_sign: bool = False) -> Tensor:
+        """Edge values back to texels ``[T, C]``: ``sign·f`` to the first texel of each pair and ``−sign·f`` to
+        the second (or ``sign·f`` to both with ``same_sign``)."""
+        acc = torch.zeros(self.H, self.W, fu.shape[-1], dtype=fu.dtype, device=fu.device)
+        other = sign if same_sign else -sign
+        acc[:, :-1] += sign * fu
+        acc[:, 1:] += other * fu
+        acc[:-1] += sign * fv
+        acc[1:] += other * fv
+        return acc.reshape(self.H * self.W, -1)
 
     def matvec(self, v: Tensor, dp: Tensor) -> Tensor:
-        scale = dp[:, self.cols] / self.thr
-        u = v[:, self.cols] * scale
-        f = self.omega * (u[self.a] - u[self.b])
-        out = torch.zeros_like(v)
-        acc = torch.zeros_like(u).index_add_(0, self.a, f).index_add_(0, self.b, -f)
-        out[:, self.cols] = acc * scale
-        return out
+        scale = self._columns(dp) / self.thr
+        u = self._columns(v) * scale
+        ug = u.reshape(self.H, self.W, -1)
+        wu, wv = self.omega
+        acc = self._spread(wu * (ug[:, :-1] - ug[:, 1:]), wv * (ug[:-1] - ug[1:]), 1.0)
+        if self.target is not None and self.nu > 0:
+            acc = acc + self.omega_u * u
+        return self._full(acc * scale)
 
 
 def _sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True) -> tuple[Tensor | None, Tensor]:
@@ -1144,7 +1219,8 @@ def _sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True
 def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor, groups, *, loss: str, delta: float,
                  iterations: int = 4, cg_iterations: int = 25, sampling: str = "bilinear",
                  sharing: float = 0.0, sharing_params: Sequence[str] | None = None, sharing_delta: float = 0.3,
-                 noise=NOISE, noise_adaptive: Sequence[str] = (),
+                 noise=NOISE, noise_adaptive: Sequence[str] = (), anchor_weight: float = 0.0,
+                 anchor_delta: float = 1.0,
                  progress: Callable[[str, int, float], None] | None = None) -> tuple[Tensor, dict]:
     """Levenberg-Marquardt over *all* texels at once with the true (bilinear) sampling footprint.
 
@@ -1191,10 +1267,24 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     All-texel albedo with / without the adaptation: shot noise 0.0264 / 0.0425, small scene with shot noise
     0.0378 / 0.0438, 1.3-texel checker 0.0201 / 0.0195, noise-free scenes unchanged (ratio < 1).
 
+    ``anchor_weight > 0`` (with ``sharing > 0``) adds a unary term to the prior that ties every texel's material
+    parameters (all but the per-texel ones, i.e. f0 and roughness for GGX + Lambert) to their values in the
+    starting ``theta`` — the sharing's proposal: ``ν Σ_i Σ_c ρ_H((p_ic − m_ic) / t_c)``, Huber scale
+    ``anchor_delta`` units, ν = ``anchor_weight`` × the data-curvature scale of μ. Without it the neighbour prior
+    alone ties a region to its material only through chains of neighbours, so where the photos leave a direction
+    flat (f0 against roughness in a metal seen without a highlight) more steps let whole regions drift along it:
+    default scene, 6 steps × 50 CG iterations, f0 0.0159 → 0.0326 (gold and the smooth dielectric away from the
+    highlights). With it (``anchor_weight`` 0.03, solve_fast's default) the same steps give 0.0087 / 0.0139 /
+    0.0510, and 6 × 30 — the default — 0.0088 / 0.0134 / 0.0515 against 0.0089 / 0.0159 / 0.0531 for the session-6
+    default (3 × 25, no anchor); docs/reconstruction.md, "Session 7", for the other scenes and weights.
+
     Returns:
         ``(theta [T, P], info)`` with the cost history, accepted steps and time.
     """
     t0 = time.perf_counter()
+    if not (anchor_weight >= 0 and math.isfinite(anchor_weight) and anchor_delta > 0 and math.isfinite(anchor_delta)):
+        raise SolverError(f"anchor_weight must be a finite weight ≥ 0 and anchor_delta a finite scale > 0, got "
+                          f"{anchor_weight!r}, {anchor_delta!r}")
     if sampling == "bilinear":
         if obs.bilinear_index is None:
             raise SolverError("joint bilinear refinement needs observations built with bilinear=True")
@@ -1245,6 +1335,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             observed[obs.texel] = True
         if names:
             prior = _SharingPrior(layout, names, H, W, observed, sharing_delta)
+            if anchor_weight > 0:
+                prior.set_anchor(_shared_default(layout), canon_of(theta), anchor_weight, anchor_delta)
     bad = [n for n in noise_adaptive if n not in {s_.name for s_ in layout.specs}]
     if bad:
         raise SolverError(f"noise_adaptive {bad} are not parameters of model '{model.name}' "
@@ -1286,6 +1378,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                     ref = dc[dc.sum(-1) > 0]
                     prior.mu = sharing * (float(ref[:, prior.calibrate].median(0).values.mean())
                                           if ref.numel() else 0.0)
+                    prior.nu = prior.anchor_weight * prior.mu / sharing
                     cost = total_of(theta)
                     history[0] = cost / n_res
                 pg, pdiag = prior.linearise(canon, dp)
@@ -1298,9 +1391,10 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             diag = diag + 1e-9 * diag.mean(-1, keepdim=True).clamp_min(1e-30)
 
             def matvec(v, lam_, dp=dp, J=J, w=w, live=live, diag=diag):
+                # J_sᵀ W_s J_s u_s as two batched products (bmm: 5.4 ms against 9.4 ms for einsum, S = 204 000)
                 u = gather(v * dp)                                                    # [S, P]
-                ju = torch.einsum("scp,sp->sc", J, u) * w
-                out = scatter(torch.einsum("scp,sc->sp", J, ju)) * dp
+                ju = torch.bmm(J, u[:, :, None])[..., 0] * w                           # [S, 3]
+                out = scatter(torch.bmm(ju[:, None, :], J)[:, 0]) * dp
                 if prior is not None:
                     out = out + prior.matvec(v, dp)
                 return torch.where(live[:, None], out + lam_ * diag * v, v)

@@ -16,7 +16,7 @@ from capture.sharing import (
     share_materials,
     unmatched_texels,
 )
-from capture.solvers import Layout, SolverError, _SharingPrior, robust_rho, solve_fast
+from capture.solvers import Layout, SolverError, _SharingPrior, solve_fast
 
 
 def _ggx_lambert():
@@ -188,9 +188,34 @@ def test_share_materials_leaves_models_without_shared_parameters_alone():
     assert info["materials"] == [] and torch.equal(out, theta)
 
 
+def _prior_check(prior, canon, layout, skip):
+    """The prior's descent direction is −½∇E (the data term's convention JᵀWr) and its Gauss-Newton product is
+    ½∇²E·v wherever every difference is inside the quadratic part (the texels ``skip`` and their neighbours
+    excluded)."""
+    T = canon.shape[0]
+    g = torch.Generator().manual_seed(1)
+    dp = torch.ones(T, layout.P, dtype=torch.float64)
+    grad, diag = prior.linearise(canon, dp)
+    x = canon.clone().requires_grad_(True)
+    (gE,) = torch.autograd.grad(prior.energy_tensor(x), x)
+    torch.testing.assert_close(grad, -0.5 * gE, rtol=1e-10, atol=1e-12)
+    v = torch.randn(T, layout.P, generator=g, dtype=torch.float64)
+    mv = prior.matvec(v, dp)
+    x2 = canon.clone().requires_grad_(True)
+    (g2,) = torch.autograd.grad(prior.energy_tensor(x2), x2, create_graph=True)
+    (hv,) = torch.autograd.grad((g2 * v).sum(), x2)
+    keep = torch.ones(T, dtype=torch.bool)
+    H, W = prior.H, prior.W
+    for t in skip:
+        i, j = divmod(t, W)
+        for di, dj in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)):
+            if 0 <= i + di < H and 0 <= j + dj < W:
+                keep[(i + di) * W + j + dj] = False
+    torch.testing.assert_close(mv[keep], 0.5 * hv[keep], rtol=1e-10, atol=1e-12)
+    return grad, diag
+
+
 def test_sharing_prior_gradient_and_matvec_match_its_energy():
-    # float64: the prior's descent direction is −½∇E (the data term's convention JᵀWr) and its
-    # Gauss-Newton product is ½∇²E·v where every difference is inside the quadratic part
     model = _ggx_lambert()
     layout = Layout.of(model)
     H = W = 5
@@ -202,28 +227,47 @@ def test_sharing_prior_gradient_and_matvec_match_its_energy():
     g = torch.Generator().manual_seed(0)
     canon = torch.rand(T, layout.P, generator=g, dtype=torch.float64) * 0.01 + 0.3
     canon[3, layout.cols("roughness")] += 0.5                  # one large jump: the Huber (linear) branch
-    dp = torch.ones(T, layout.P, dtype=torch.float64)
-    grad, diag = prior.linearise(canon, dp)
-    x = canon.clone().requires_grad_(True)
-    E = prior.mu * robust_rho(prior._diff(x), "huber", prior.delta).sum()
-    (gE,) = torch.autograd.grad(E, x)
-    torch.testing.assert_close(grad, -0.5 * gE, rtol=1e-10, atol=1e-12)
+    grad, diag = _prior_check(prior, canon, layout, skip=[3])
     assert float(grad[:, layout.cols("albedo")].abs().max()) == 0.0       # albedo is not shared
     assert float(grad[7].abs().max()) == 0.0                              # unobserved texel: no edges
-    # Hessian-vector product on a small perturbation, quadratic part only (texel 3 excluded)
-    v = torch.randn(T, layout.P, generator=g, dtype=torch.float64)
-    v[3] = 0
-    mv = prior.matvec(v, dp)
-    x2 = canon.clone().requires_grad_(True)
-    E2 = (prior.mu * prior._diff(x2).square()).sum()                       # ω = μ inside the quadratic part
-    (g2,) = torch.autograd.grad(E2, x2, create_graph=True)
-    (hv,) = torch.autograd.grad((g2 * v).sum(), x2)
-    near3 = (prior.a == 3) | (prior.b == 3)
-    keep = torch.ones(T, dtype=torch.bool)
-    keep[prior.a[near3]] = False
-    keep[prior.b[near3]] = False
-    torch.testing.assert_close(mv[keep], 0.5 * hv[keep], rtol=1e-10, atol=1e-12)
     assert bool((diag[:, layout.cols("f0")][observed] > 0).all())
+    # the energy by hand: 40 edges of a 5 × 5 grid, 4 of them touch the unobserved texel 7 (all quadratic but
+    # the 3 edges of texel 3, whose roughness jumped by 0.5 = 25 units: Huber 2·1·|d| − 1 there)
+    d = (canon[:, prior.cols] / prior.thr).reshape(H, W, -1)
+    ok = observed.reshape(H, W)
+    by_hand = 0.0
+    for (i, j), (k, m) in [(((i, j), (i, j + 1))) for i in range(H) for j in range(W - 1)] + \
+            [(((i, j), (i + 1, j))) for i in range(H - 1) for j in range(W)]:
+        if ok[i, j] and ok[k, m]:
+            r = d[i, j] - d[k, m]
+            by_hand += float(torch.where(r.abs() <= 1, r * r, 2 * r.abs() - 1).sum())
+    assert prior.energy(canon) == pytest.approx(0.7 * by_hand, rel=1e-12)
+
+
+def test_sharing_prior_anchor_term_ties_the_material_parameters_to_the_proposal():
+    # the unary term ν Σ ρ_H((p − m) / t): zero at the proposal, only on the material columns (not the albedo),
+    # Huber beyond anchor_delta units, and consistent with its own gradient and Gauss-Newton product
+    model = _ggx_lambert()
+    layout = Layout.of(model)
+    H = W = 4
+    T = H * W
+    names = [s.name for s in layout.specs]
+    prior = _SharingPrior(layout, names, H, W, torch.ones(T, dtype=torch.bool), delta=0.3)
+    g = torch.Generator().manual_seed(2)
+    proposal = torch.rand(T, layout.P, generator=g, dtype=torch.float64) * 1e-3 + 0.3   # smooth
+    prior.set_anchor(["f0", "roughness"], proposal, weight=0.1, delta=1.0)
+    prior.mu, prior.nu = 0.0, 2.0                              # the unary term alone
+    assert prior.energy(proposal) == 0.0
+    moved = proposal.clone()
+    moved[5, layout.cols("albedo")] += 0.3                     # the albedo is not anchored: no cost
+    assert prior.energy(moved) == 0.0
+    moved[5, layout.cols("roughness")] += 0.01                 # 0.5 units (roughness unit 0.02): quadratic
+    assert prior.energy(moved) == pytest.approx(2.0 * 0.25, rel=1e-9)
+    moved[6, layout.cols("f0")[0]] += 0.05                     # 5 units (f0 unit 0.01): linear, 2·1·5 − 1
+    assert prior.energy(moved) == pytest.approx(2.0 * (0.25 + 9.0), rel=1e-9)
+    prior.mu = 0.5                                             # both terms together
+    grad, _ = _prior_check(prior, moved, layout, skip=[5, 6])
+    assert float(grad[5, layout.cols("roughness")[0]]) < 0    # pulled back towards the proposal
 
 
 def test_sharing_prior_weight_is_calibrated_on_the_material_parameters():
@@ -247,6 +291,12 @@ def test_share_option_validation():
         solve_fast(model, obs, candidates=0)
     with pytest.raises(SolverError, match="sharing"):
         solve_fast(model, obs, sharing=-1.0)
+    with pytest.raises(SolverError, match="anchor_weight must be a finite weight"):
+        solve_fast(model, obs, anchor_weight=float("nan"))
+    with pytest.raises(SolverError, match="joint_iterations must be an integer"):
+        solve_fast(model, obs, joint_iterations=-1)
+    with pytest.raises(SolverError, match="cg_iterations must be an integer"):
+        solve_fast(model, obs, cg_iterations=2.5)
     with pytest.raises(SolverError, match="sharing_albedo must be True or False"):
         solve_fast(model, obs, sharing_albedo="no")
     layout = Layout.of(model)
