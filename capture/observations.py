@@ -162,7 +162,8 @@ class Observations:
         """
         S = self.n_samples
         ref = next(iter(params.values()))
-        pq = {k: x[self.pair_sample] for k, x in params.items()}
+        # index_select rather than x[index]: 0.7 against 3.3 ms for 393 000 rows of 3 (1 thread)
+        pq = {k: torch.index_select(x, 0, self.pair_sample) for k, x in params.items()}
         rad = self.irradiance.to(ref.dtype) * model.cosine_brdf(self.angles, pq)
         out = torch.zeros(S, 3, dtype=rad.dtype, device=rad.device).index_add(0, self.pair_sample, rad)
         for light, idx in self.env_terms:
