@@ -156,6 +156,18 @@ def test_conductor_reduces_to_dielectric_and_huge_k():
         assert torch.isfinite(f).all() and (f > 0.999).all()
 
 
+def test_conductor_float32_at_grazing_incidence_near_unit_index():
+    # found by the property test below: with η = 1 the term η² − κ² − s² is c² − κ², and 1 − c² rounds to 1 in
+    # float32 for c < 2.4e-4; written as (η − 1)(η + 1) − κ² + c² float32 stays within 2e-6 of float64 (it was
+    # 1e-4 off at η = 1, κ = 1e-6, c = 6.1e-5), checked against the complex-index reference
+    for eta, k, cos in [(1.0, 1e-6, 6.103515625e-05), (1.0, 1e-4, 1e-4), (0.9999, 1e-2, 1e-4), (1.0001, 0.0, 1e-5)]:
+        f32 = fr.fresnel_conductor(torch.tensor([[eta]]), torch.tensor([[k]]), torch.tensor([[cos]])).item()
+        f64 = fr.fresnel_conductor(t64(eta), t64(k), c64(cos)).item()
+        ref = complex_fresnel(eta, k, torch.tensor([[cos]], dtype=D64)).item()
+        assert f64 == pytest.approx(ref, abs=1e-9)
+        assert abs(f32 - f64) < 2e-6, (eta, k, cos, f32, f64)
+
+
 def test_spherical_gaussian_beats_schlick_for_glass():
     c = torch.linspace(0.0, 1.0, 201, dtype=D64).unsqueeze(-1)
     exact = fr.fresnel_dielectric(t64(1.5), c)
