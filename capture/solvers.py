@@ -1204,8 +1204,8 @@ class _SharingPrior:
 
 
 #: Trial steps per outer iteration of :func:`refine_joint`, the damping λ growing ×4 after each rejected one
-#: (from ≥ 1e-9 up to ≥ 1e-3·4¹¹ ≈ 4 000 × the diagonal). With 4 (until session 7) a scene whose first steps needed
-#: λ ≈ 1 never moved: the small fixed-rig scene (96 px, 32² maps) kept the sharing's proposal, all-texel albedo /
+#: (from ≥ 1e-9 up to ≥ 1e-3·4¹¹ ≈ 4 000 × the diagonal). With 4 (until session 7) a scene whose first step needed
+#: λ ≈ 0.26 never moved: the small fixed-rig scene (96 px, 32² maps) kept the sharing's proposal, all-texel albedo /
 #: f0 / roughness 0.078 / 0.082 / 0.255, worst view 29.8 dB; with 12 its 5th attempt is accepted and the refinement
 #: goes on: 0.031 / 0.059 / 0.155, 63.9 dB. Scenes whose steps are accepted at once are unchanged.
 JOINT_ATTEMPTS = 12

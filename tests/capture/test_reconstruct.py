@@ -232,7 +232,7 @@ def test_proposal_prior_keeps_more_joint_steps_from_drifting(tmp_path):
 
 
 def test_joint_refinement_raises_its_damping_until_a_step_is_accepted(tmp_path):
-    # fixed lights 45° off the cameras: the joint refinement's first steps need λ ≈ 1; with 4 attempts per
+    # fixed lights 45° off the cameras: the joint refinement's first step needs λ ≈ 0.26; with 4 attempts per
     # iteration (λ ≤ 0.064) it stopped before its first step and kept the sharing's proposal (all-texel albedo /
     # f0 / roughness 0.078 / 0.082 / 0.255, worse than without sharing: 0.061 / 0.218 / 0.180). Measured with
     # JOINT_ATTEMPTS = 12: 0.031 / 0.059 / 0.155, worst view 63.9 dB (29.8 before)
