@@ -1171,8 +1171,8 @@ class _SharingPrior:
         wu = self.mu * _irls(du, "huber", self.delta) * self.edge_u
         wv = self.mu * _irls(dv, "huber", self.delta) * self.edge_v
         self.omega = (wu, wv)
-        g = self._spread(wu * du, wv * dv, -1.0)
-        deg = self._spread(wu, wv, 1.0, same_sign=True)
+        g = self._spread(wu * du, wv * dv, -1.0, 1.0)
+        deg = self._spread(wu, wv, 1.0, 1.0)
         if self.target is not None and self.nu > 0:
             da = self._anchor_diff(canon)
             self.omega_u = self.nu * _irls(da, "huber", self.anchor_delta) * self.anchored
@@ -1181,15 +1181,14 @@ class _SharingPrior:
         scale = self._columns(dp) / self.thr
         return self._full(g * scale), self._full(deg * scale.square())
 
-    def _spread(self, fu: Tensor, fv: Tensor, sign: float, same_sign: bool = False) -> Tensor:
-        """Edge values back to texels ``[T, C]``: ``sign·f`` to the first texel of each pair and ``−sign·f`` to
-        the second (or ``sign·f`` to both with ``same_sign``)."""
+    def _spread(self, fu: Tensor, fv: Tensor, first: float, second: float) -> Tensor:
+        """Edge values back to texels ``[T, C]``: ``first·f`` to the first texel of each pair, ``second·f`` to the
+        other."""
         acc = torch.zeros(self.H, self.W, fu.shape[-1], dtype=fu.dtype, device=fu.device)
-        other = sign if same_sign else -sign
-        acc[:, :-1] += sign * fu
-        acc[:, 1:] += other * fu
-        acc[:-1] += sign * fv
-        acc[1:] += other * fv
+        acc[:, :-1] += first * fu
+        acc[:, 1:] += second * fu
+        acc[:-1] += first * fv
+        acc[1:] += second * fv
         return acc.reshape(self.H * self.W, -1)
 
     def matvec(self, v: Tensor, dp: Tensor) -> Tensor:
@@ -1197,7 +1196,7 @@ class _SharingPrior:
         u = self._columns(v) * scale
         ug = u.reshape(self.H, self.W, -1)
         wu, wv = self.omega
-        acc = self._spread(wu * (ug[:, :-1] - ug[:, 1:]), wv * (ug[:-1] - ug[1:]), 1.0)
+        acc = self._spread(wu * (ug[:, :-1] - ug[:, 1:]), wv * (ug[:-1] - ug[1:]), 1.0, -1.0)
         if self.target is not None and self.nu > 0:
             acc = acc + self.omega_u * u
         return self._full(acc * scale)
