@@ -284,7 +284,8 @@ def test_sharing_that_misses_a_material_falls_back_to_the_texels_own_fits(tmp_pa
     # texels to make an anchor, so no metal material exists and the sharing gave every metal texel a dielectric:
     # data cost after the joint refinement 0.0368 against 0.0028 for the per-texel fit it started from. The solver
     # notices, lets the texels whose own samples reject their material keep their own fit and refines again
-    # (data cost 0.0028). Measured worst / mean view PSNR: 20.3 / 28.3 dB; 18.3 / 23.8 without the fallback, and
+    # (data cost 0.0028). Measured worst / mean view PSNR: 21.5 / 30.7 dB (20.3 / 28.3 with session 6's joint steps);
+    # 18.3 / 23.8 without the fallback, and
     # 0.6 / 15.4 before the scalars came from the per-texel fit too — under the sharing the coat took the
     # materials' values, reported as *measured* coat roughness 0.227 (truth 0.1) and coat η 1.365 (truth 1.5)
     make_synthetic(small_scene("gotanda2012-layered", uniform={"coat_roughness": 0.1}, image_size=64, texture_size=32,
