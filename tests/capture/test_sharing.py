@@ -232,15 +232,18 @@ def test_sharing_prior_gradient_and_matvec_match_its_energy():
     assert float(grad[7].abs().max()) == 0.0                              # unobserved texel: no edges
     assert bool((diag[:, layout.cols("f0")][observed] > 0).all())
     # the energy by hand: 40 edges of a 5 × 5 grid, 4 of them touch the unobserved texel 7 (all quadratic but
-    # the 3 edges of texel 3, whose roughness jumped by 0.5 = 25 units: Huber 2·1·|d| − 1 there)
+    # the 3 edges of texel 3, whose roughness jumped by 0.5 = 25 units: Huber 2·1·|d| − 1 there), plus the two
+    # pairs that bridge texel 7: (1, 1)–(1, 3) along u and (0, 2)–(2, 2) along v
     d = (canon[:, prior.cols] / prior.thr).reshape(H, W, -1)
     ok = observed.reshape(H, W)
+    pairs = [((i, j), (i, j + 1)) for i in range(H) for j in range(W - 1)] + \
+        [((i, j), (i + 1, j)) for i in range(H - 1) for j in range(W)]
+    pairs = [(a, b) for a, b in pairs if ok[a] and ok[b]] + [((1, 1), (1, 3)), ((0, 2), (2, 2))]
+    assert len(pairs) == 38
     by_hand = 0.0
-    for (i, j), (k, m) in [(((i, j), (i, j + 1))) for i in range(H) for j in range(W - 1)] + \
-            [(((i, j), (i + 1, j))) for i in range(H - 1) for j in range(W)]:
-        if ok[i, j] and ok[k, m]:
-            r = d[i, j] - d[k, m]
-            by_hand += float(torch.where(r.abs() <= 1, r * r, 2 * r.abs() - 1).sum())
+    for a, b in pairs:
+        r = d[a] - d[b]
+        by_hand += float(torch.where(r.abs() <= 1, r * r, 2 * r.abs() - 1).sum())
     assert prior.energy(canon) == pytest.approx(0.7 * by_hand, rel=1e-12)
 
 
