@@ -1073,8 +1073,8 @@ PRIOR_UNIT = {"albedo": 0.3}
 class _SharingPrior:
     """Edge-preserving prior that lets neighbouring texels share parameters (see :func:`refine_joint`).
 
-    Energy ``μ Σ_edges Σ_c ρ_H((p_ic − p_jc) / t_c)`` over the links (i, j): 4-neighbour pairs of observed
-    texels, and pairs two apart along a row or column with an unobserved texel between them (:attr:`links`),
+    Energy ``μ Σ_edges Σ_c ρ_H((p_ic − p_jc) / t_c)`` over the edges (i, j): 4-neighbour pairs of observed
+    texels, and *bridges* — observed texels two apart along a row or column with an unobserved one between them —,
     ``p`` the canonical values of the shared parameters' channels, ``t_c`` their units — the
     observability thresholds (:func:`std_threshold`), or :data:`PRIOR_UNIT` where it gives one — and ρ_H the
     Huber cost of :func:`robust_rho` with scale δ: quadratic — smoothing — for differences below δ units
@@ -1107,19 +1107,19 @@ class _SharingPrior:
         self.thr = torch.tensor([PRIOR_UNIT.get(n, std_threshold(spec[n])) for n in col_names], dtype=ACC, device=dev)
         ok = observed.reshape(H, W)
         self.H, self.W = H, W
-        # links (k, axis, mask): the pairs k texels apart along u (axis 1, mask [H, W−k, 1]) or v (axis 0,
-        # [H−k, W, 1]) that count — 4-neighbours both observed, and observed texels two apart with an unobserved one
-        # between them. Near a UV sphere's poles texels are narrower than a pixel and some are read by no sample;
-        # without the second kind such a texel cut the chain, and its observed neighbour was tied to one side only
-        # (default scene, docs/reconstruction.md "Session 8": all-texel albedo 0.0088 → 0.0062)
-        self.links = []
-        for k, axis in ((1, 1), (1, 0), (2, 1), (2, 0)):
-            first, second = self._pairs(ok, k, axis)
-            mask = first & second
-            if k == 2:
-                mask = mask & ~(ok[:, 1:-1] if axis == 1 else ok[1:-1])
-            if bool(mask.any()) or k == 1:
-                self.links.append((k, axis, mask.to(ACC)[..., None]))
+        # 1 on the edges between two observed texels: along u (row-wise) [H, W−1, 1] and along v [H−1, W, 1]
+        self.edge_u = (ok[:, :-1] & ok[:, 1:]).to(ACC)[..., None]
+        self.edge_v = (ok[:-1] & ok[1:]).to(ACC)[..., None]
+        # bridges: observed texels two apart along a row or column with an unobserved one between them, as flat
+        # index pairs [B] (few: 1 212 on the default scene, against 101 122 edges). Near a UV sphere's poles texels
+        # are narrower than a pixel and some are read by no sample; without the bridges such a texel cut the chain
+        # and its observed neighbour was tied to one side only (default scene, docs/reconstruction.md "Session 8":
+        # all-texel albedo 0.0088 → 0.0062)
+        flat = torch.arange(H * W, device=dev).reshape(H, W)
+        row = ok[:, :-2] & ~ok[:, 1:-1] & ok[:, 2:]
+        col = ok[:-2] & ~ok[1:-1] & ok[2:]
+        self.bridge_i = torch.cat([flat[:, :-2][row], flat[:-2][col]])
+        self.bridge_j = torch.cat([flat[:, 2:][row], flat[2:][col]])
         self.delta = float(delta)
         self.mu = 0.0
         self.omega = None
@@ -1155,29 +1155,22 @@ class _SharingPrior:
         out[:, self.cols] = x
         return out
 
-    @staticmethod
-    def _pairs(x: Tensor, k: int, axis: int) -> tuple[Tensor, Tensor]:
-        """The first and second members of the pairs ``k`` apart along ``axis`` (0: v, 1: u) of ``x [H, W, ...]``."""
-        return (x[:, :-k], x[:, k:]) if axis == 1 else (x[:-k], x[k:])
-
-    def _diff(self, canon: Tensor) -> list[Tensor]:
-        """Differences in units over :attr:`links` (all pairs; the mask of each link says which count)."""
-        c = (self._columns(canon) / self.thr).reshape(self.H, self.W, -1)
-        out = []
-        for k, axis, _ in self.links:
-            a, b = self._pairs(c, k, axis)
-            out.append(a - b)
-        return out
+    def _diff(self, canon: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Differences in units: along u ``[H, W−1, C]`` and along v ``[H−1, W, C]`` (all pairs; the edges that
+        count are :attr:`edge_u`, :attr:`edge_v`), and over the bridges ``[B, C]``."""
+        flat = self._columns(canon) / self.thr
+        c = flat.reshape(self.H, self.W, -1)
+        return c[:, :-1] - c[:, 1:], c[:-1] - c[1:], flat[self.bridge_i] - flat[self.bridge_j]
 
     def _anchor_diff(self, canon: Tensor) -> Tensor:
         return (self._columns(canon) - self.target) / self.thr * self.anchored
 
     def energy_tensor(self, canon: Tensor) -> Tensor:
         """The prior's energy at ``canon`` ``[T, P]`` as a (differentiable) scalar tensor."""
-        e = canon.new_zeros(())
-        for d, (_, _, mask) in zip(self._diff(canon), self.links, strict=True):
-            e = e + (robust_rho(d, "huber", self.delta) * mask).sum()
-        e = self.mu * e
+        du, dv, db = self._diff(canon)
+        e = self.mu * ((robust_rho(du, "huber", self.delta) * self.edge_u).sum()
+                       + (robust_rho(dv, "huber", self.delta) * self.edge_v).sum()
+                       + robust_rho(db, "huber", self.delta).sum())
         if self.target is not None and self.nu > 0:
             e = e + self.nu * robust_rho(self._anchor_diff(canon), "huber", self.anchor_delta).sum()
         return e
@@ -1187,11 +1180,13 @@ class _SharingPrior:
 
     def linearise(self, canon: Tensor, dp: Tensor) -> tuple[Tensor, Tensor]:
         """IRLS weights at ``canon``; returns (descent gradient [T, P] in θ, preconditioner diagonal [T, P])."""
-        diffs = self._diff(canon)
-        self.omega = [self.mu * _irls(d, "huber", self.delta) * mask
-                      for d, (_, _, mask) in zip(diffs, self.links, strict=True)]
-        g = self._spread([w * d for w, d in zip(self.omega, diffs, strict=True)], -1.0, 1.0)
-        deg = self._spread(self.omega, 1.0, 1.0)
+        du, dv, db = self._diff(canon)
+        wu = self.mu * _irls(du, "huber", self.delta) * self.edge_u
+        wv = self.mu * _irls(dv, "huber", self.delta) * self.edge_v
+        wb = self.mu * _irls(db, "huber", self.delta)
+        self.omega = (wu, wv, wb)
+        g = self._spread(wu * du, wv * dv, wb * db, -1.0, 1.0)
+        deg = self._spread(wu, wv, wb, 1.0, 1.0)
         if self.target is not None and self.nu > 0:
             da = self._anchor_diff(canon)
             self.omega_u = self.nu * _irls(da, "huber", self.anchor_delta) * self.anchored
@@ -1200,25 +1195,26 @@ class _SharingPrior:
         scale = self._columns(dp) / self.thr
         return self._full(g * scale), self._full(deg * scale.square())
 
-    def _spread(self, values: Sequence[Tensor], first: float, second: float) -> Tensor:
-        """Values per link pair back to texels ``[T, C]``: ``first·f`` to the first texel of each pair, ``second·f``
-        to the other."""
-        acc = torch.zeros(self.H, self.W, values[0].shape[-1], dtype=values[0].dtype, device=values[0].device)
-        for f, (k, axis, _) in zip(values, self.links, strict=True):
-            a, b = self._pairs(acc, k, axis)
-            a += first * f
-            b += second * f
-        return acc.reshape(self.H * self.W, -1)
+    def _spread(self, fu: Tensor, fv: Tensor, fb: Tensor, first: float, second: float) -> Tensor:
+        """Pair values back to texels ``[T, C]``: ``first·f`` to the first texel of each pair, ``second·f`` to the
+        other (pairs along u, along v, bridges)."""
+        acc = torch.zeros(self.H, self.W, fu.shape[-1], dtype=fu.dtype, device=fu.device)
+        acc[:, :-1] += first * fu
+        acc[:, 1:] += second * fu
+        acc[:-1] += first * fv
+        acc[1:] += second * fv
+        acc = acc.reshape(self.H * self.W, -1)
+        if fb.shape[0]:
+            acc.index_add_(0, self.bridge_i, first * fb).index_add_(0, self.bridge_j, second * fb)
+        return acc
 
     def matvec(self, v: Tensor, dp: Tensor) -> Tensor:
         scale = self._columns(dp) / self.thr
         u = self._columns(v) * scale
         ug = u.reshape(self.H, self.W, -1)
-        parts = []
-        for w, (k, axis, _) in zip(self.omega, self.links, strict=True):
-            a, b = self._pairs(ug, k, axis)
-            parts.append(w * (a - b))
-        acc = self._spread(parts, 1.0, -1.0)
+        wu, wv, wb = self.omega
+        acc = self._spread(wu * (ug[:, :-1] - ug[:, 1:]), wv * (ug[:-1] - ug[1:]),
+                           wb * (u[self.bridge_i] - u[self.bridge_j]), 1.0, -1.0)
         if self.target is not None and self.nu > 0:
             acc = acc + self.omega_u * u
         return self._full(acc * scale)
