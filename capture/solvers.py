@@ -1262,7 +1262,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     trust region |Δθ_i| ≤ :data:`MAX_STEP` per component as :func:`solve_fast`.
 
     ``sharing > 0`` adds the edge-preserving prior of :class:`_SharingPrior` between 4-neighbour
-    observed texels on ``sharing_params`` (default: every parameter, the albedo included): Huber on the
+    observed texels (and, since session 8, observed texels two apart with an unobserved one between them)
+    on ``sharing_params`` (default: every parameter, the albedo included): Huber on the
     differences in units of the observability thresholds, quadratic below ``sharing_delta``, with
     weight μ = ``sharing`` × the median data curvature of a one-threshold change (so ``sharing`` is
     dimensionless). It enters the normal equations through IRLS weights, the matrix-free product and
