@@ -1437,7 +1437,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                 rhs = torch.where(live[:, None], g, torch.zeros_like(g))
                 x = torch.zeros_like(rhs)
                 res = rhs.clone()
-                z = torch.einsum("tpq,tq->tp", Minv, res)
+                z = torch.bmm(Minv, res[:, :, None])[..., 0]
                 d = z.clone()
                 rz = float((res * z).sum())
                 rz0 = rz
@@ -1449,7 +1449,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                     a = rz / dAd
                     x = x + a * d
                     res = res - a * Ad
-                    z = torch.einsum("tpq,tq->tp", Minv, res)
+                    z = torch.bmm(Minv, res[:, :, None])[..., 0]
                     rz_new = float((res * z).sum())
                     if rz_new <= 1e-20 * rz0:
                         break
