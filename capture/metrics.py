@@ -4,7 +4,8 @@
   texels, optionally also excluding texels where the parameter was unobservable), overall and
   per material region of a region-id map.
 * :func:`observability_errors` — the same on all observed texels *and* on the texels where each
-  map is observable, with the observable fraction (what the report's error table shows).
+  map is observable, with the observable fraction and the share of the error in the texels flagged
+  unobservable (what the report's error table shows).
 * :func:`image_metrics` — PSNR and SSIM (``kornia.metrics``) of a re-rendered view against its
   photo, over the image (background is 0 in both), with the peak taken as the photo's maximum.
 """
@@ -75,23 +76,38 @@ def map_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], mask: Tenso
 def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], observed: Tensor,
                          unobservable: Mapping[str, Tensor]) -> dict:
     """Per map: errors on all observed texels, on the observed texels where the map is observable,
-    and the observable fraction of the observed texels.
+    the observable fraction of the observed texels, and the share of the squared error on all observed texels
+    that lies in the texels flagged unobservable (``flagged_share``, in [0, 1]; 0 when there is no error).
+
+    ``flagged_share`` says whether the tool knew where it was wrong: near 1, the error is where the report
+    warned that the photos cannot tell; well below 1, texels called determined are wrong (e.g. a second basin
+    judged at the estimate). Default scene (docs/reconstruction.md, session 9): 0.998 / 1.000 / 1.000 for
+    albedo / f0 / roughness.
 
     Args:
         maps: fitted maps name → ``[H, W, C]`` (the solver's raw values, not the filled ones);
         gt: true maps; observed: ``[H, W]`` bool; unobservable: name → ``[H, W]`` bool.
 
     Returns:
-        ``{name: {"observed": {rmse, max, texels}, "observable": {...}, "observable_fraction": f}}``.
+        ``{name: {"observed": {rmse, max, texels}, "observable": {...}, "observable_fraction": f,
+        "flagged_share": s}}``.
     """
     if observed.dim() != 2:
         raise MetricsError(f"observed must be [H, W] bool, got {tuple(observed.shape)}")
     all_ = map_errors(maps, gt, observed)
     obs_ = map_errors(maps, gt, observed, exclude=unobservable)
     n = max(int(observed.sum()), 1)
-    return {k: {"observed": all_[k], "observable": obs_[k],
-                "observable_fraction": float((observed & ~unobservable[k]).sum()) / n if k in unobservable else 1.0}
-            for k in all_}
+
+    def squared(row: dict) -> float:            # the summed squared error behind an RMSE over `texels` rows
+        return row["rmse"] ** 2 * row["texels"] if row["texels"] else 0.0
+
+    out = {}
+    for k in all_:
+        total = squared(all_[k])
+        out[k] = {"observed": all_[k], "observable": obs_[k],
+                  "observable_fraction": float((observed & ~unobservable[k]).sum()) / n if k in unobservable else 1.0,
+                  "flagged_share": min(max(1.0 - squared(obs_[k]) / total, 0.0), 1.0) if total > 0 else 0.0}
+    return out
 
 
 def image_metrics(rendered: Tensor, photo: Tensor, mask: Tensor | None = None) -> dict:

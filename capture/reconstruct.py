@@ -553,12 +553,13 @@ def _summary(r: Report) -> str:
                                            for s in r.selection))
     if "maps" in r.errors:
         lines.append("errors vs ground truth, RMSE / max: on observed texels | on texels where the map is observable "
-                     "(fraction observable)")
+                     "(fraction observable) | share of the squared error in texels flagged unobservable")
         frac = r.coverage.get("observable_fraction", {})
         for k, v in r.errors["maps"].items():
             o = r.errors.get("maps_observable", {}).get(k, {})
+            flagged = r.errors.get("observability", {}).get(k, {}).get("flagged_share", float("nan"))
             lines.append(f"  {k:14s} {v['rmse']:.5f} / {v['max']:.5f} | {o.get('rmse', float('nan')):.5f} / "
-                         f"{o.get('max', float('nan')):.5f} ({frac.get(k, float('nan')):.1%})")
+                         f"{o.get('max', float('nan')):.5f} ({frac.get(k, float('nan')):.1%}) | {flagged:.1%}")
     if r.views:
         ps = [v["psnr"] for v in r.views]
         lines.append(f"re-render PSNR {min(ps):.1f}–{max(ps):.1f} dB, SSIM mean "

@@ -355,7 +355,9 @@ def test_the_error_is_where_the_report_says_the_photos_cannot_tell(tmp_path):
     for k in ("albedo", "f0", "roughness"):
         e = rep.errors["observability"][k]
         every, determined = e["observed"], e["observable"]
-        flagged_share = 1 - determined["rmse"] ** 2 * determined["texels"] / (every["rmse"] ** 2 * every["texels"])
+        by_hand = 1 - determined["rmse"] ** 2 * determined["texels"] / (every["rmse"] ** 2 * every["texels"])
+        assert e["flagged_share"] == pytest.approx(by_hand, abs=1e-12)
         assert e["observable_fraction"] > floor[k], (k, e["observable_fraction"])
-        assert flagged_share > 0.98, (k, flagged_share)
+        assert e["flagged_share"] > 0.98, (k, e["flagged_share"])
         assert determined["rmse"] < cap[k], (k, determined["rmse"])
+    assert "share of the squared error in texels flagged unobservable" in (tmp_path / "o" / "summary.txt").read_text()
