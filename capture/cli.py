@@ -79,8 +79,9 @@ def _add_synth_args(p: argparse.ArgumentParser) -> None:
 def _cmd_reconstruct(args) -> int:
     from capture.reconstruct import reconstruct
 
+    extra = {"pooled": args.pooled} if args.pooled else {}
     report = reconstruct(args.dataset, model=args.model, out_dir=args.out, force=args.force,
-                         solver=args.solver, loss=args.loss, texture_size=args.tex, **known_options(args))
+                         solver=args.solver, loss=args.loss, texture_size=args.tex, **known_options(args), **extra)
     summary = Path(args.out) / "summary.txt"
     print(summary.read_text() if summary.exists() else report)
     return 0
@@ -92,8 +93,16 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
                    help="fast: per-texel Gauss-Newton/LM with closed-form linear parameters; adam: first order")
     p.add_argument("--loss", choices=("l2", "huber", "l1"), default="l2", help="robust loss (huber/l1 for highlights)")
     p.add_argument("--tex", type=int, default=None, help="texture size of the recovered maps (default: the dataset's)")
+    add_pooled_arg(p)
     add_known_args(p)
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+
+
+def add_pooled_arg(p: argparse.ArgumentParser) -> None:
+    """``--pooled N``: the fast path's pooled material proposals (``solve_fast(pooled=N)``)."""
+    p.add_argument("--pooled", type=int, default=0, metavar="N",
+                   help="fast path: let N×N-texel tiles without an anchor propose materials of their own "
+                        "(try 4 with fixed lights, where a rough material shows no highlight peak; 0 = off)")
 
 
 def add_known_args(p: argparse.ArgumentParser) -> None:

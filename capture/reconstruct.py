@@ -100,7 +100,7 @@ def _model(name, known: Mapping[str, object] | None = None):
 
 _FAST_KEYS = ("iterations", "grid", "refine", "schedule", "smoothness", "delta", "observable_std", "noise",
               "reproject", "sampling", "joint_iterations", "cg_iterations", "tol", "fill_before_joint",
-              "share", "candidates", "sharing", "sharing_albedo", "anchor_weight")
+              "share", "candidates", "sharing", "sharing_albedo", "anchor_weight", "pooled")
 _ADAM_KEYS = ("iterations", "lr", "delta", "observable_std", "noise", "sampling", "time_budget_s")
 
 

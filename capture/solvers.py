@@ -745,7 +745,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                observable_std: float | Mapping[str, float] | None = None, noise=NOISE, reproject: int = 0,
                sampling: str = "nearest", joint_iterations: int | None = None, cg_iterations: int | None = None,
                fill_before_joint: bool = True, share: bool | None = None, candidates: int = 8, sharing: float = 1.0,
-               sharing_albedo: bool = True, anchor_weight: float = 0.03,
+               sharing_albedo: bool = True, anchor_weight: float = 0.03, pooled: int = 0,
                progress: Callable[[str, int, float], None] | None = None) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
@@ -788,6 +788,11 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             the sharing (session 4): 2 → 3 steps all-texel RMSE 0.0155 / 0.0165 / 0.0557 → 0.0161 / 0.0159 / 0.0532;
             with it (session 7) 3 × 25 without the anchor 0.0089 / 0.0159 / 0.0531 (observable 0.0005 / 0.0017 /
             0.0018), 6 × 30 with it 0.0088 / 0.0134 / 0.0515 (0.0004 / 0.0011 / 0.0015), +2–3 s.
+        pooled: tile size (texels) of the sharing's pooled proposals (:func:`capture.sharing.share_materials`
+            ``pool_block``; 0 = off, the default): tiles of non-anchor texels with no anchor nearby fit a material
+            of their own on their pooled samples and propose it when it beats every candidate. For materials that
+            give no anchor — a rough dielectric under fixed lights: all-texel roughness 0.109 → 0.048 there, but
+            the default (flash) scene's f0 0.0126 → 0.0294 (docs/reconstruction.md, "Session 10").
         anchor_weight: weight of the joint refinement's tie of each texel's material parameters to the sharing's
             proposal (:func:`refine_joint`; relative to the neighbour prior's data scale; 0 = off, only with the
             sharing). 0.03: the best of 0.01 / 0.03 / 0.1 on the default scene (6 × 50 steps: f0 0.0171 / 0.0139 /
@@ -852,6 +857,9 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         raise SolverError(f"sharing_albedo must be True or False, got {sharing_albedo!r}")
     if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
         raise SolverError(f"candidates must be an integer ≥ 1 (number of shared materials), got {candidates!r}")
+    if isinstance(pooled, bool) or not isinstance(pooled, int) or pooled < 0:
+        raise SolverError(f"pooled must be a tile size in texels ≥ 0 (0 = no pooled proposals, 4 suits a "
+                          f"fixed-light rig), got {pooled!r}")
     if iterations < 0 or grid < 0:
         raise SolverError(f"iterations and grid must be ≥ 0, got {iterations}, {grid}")
     delta = _default_delta(obs, loss, delta)
@@ -1001,9 +1009,11 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         shared_names = _shared_default(layout)
         anchors = torch.stack([good[n] for n in shared_names]).all(0) if shared_names else observed_n
         theta_texel = theta
-        theta, sinfo = share_materials(model, obs, layout, theta, anchors, candidates=candidates, noise=noise)
+        theta, sinfo = share_materials(model, obs, layout, theta, anchors, candidates=candidates, noise=noise,
+                                       pool_block=pooled)
         info.update(share_s=sinfo["share_s"], materials=sinfo["materials"], shared=sinfo["shared"],
-                    share_anchors=int(anchors.sum()), share_pruned=sinfo.get("pruned", 0))
+                    share_anchors=int(anchors.sum()), share_pruned=sinfo.get("pruned", 0),
+                    pooled_tiles=sinfo.get("pooled_tiles", 0))
         if progress is not None:
             progress("share", it, history[-1])
         # nothing to share from (no texel determined the shared parameters, or the model has none):

@@ -12,7 +12,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from capture.cli import add_known_args, known_options  # noqa: E402  (shared with `shadecap reconstruct`)
+from capture.cli import add_known_args, add_pooled_arg, known_options  # noqa: E402  (shared with `shadecap reconstruct`)
 
 
 def main(argv=None) -> int:
@@ -31,6 +31,7 @@ def main(argv=None) -> int:
                     help="how samples read the maps (default: as the dataset's ground truth, else bilinear)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (1 is faster on a loaded machine)")
     ap.add_argument("--float64", action="store_true", help="evaluate the model in float64")
+    add_pooled_arg(ap)
     add_known_args(ap)
     ap.add_argument("--force", action="store_true")
     a = ap.parse_args(argv)
@@ -39,7 +40,7 @@ def main(argv=None) -> int:
     from capture.reconstruct import reconstruct
 
     opts = {k: v for k, v in (("iterations", a.iterations), ("grid", a.grid), ("schedule", a.schedule),
-                              ("smoothness", a.smoothness)) if v is not None}
+                              ("smoothness", a.smoothness), ("pooled", a.pooled or None)) if v is not None}
     reconstruct(a.dataset, model=a.model, out_dir=a.out, force=a.force, solver=a.solver, loss=a.loss,
                 texture_size=a.tex, dtype=torch.float64 if a.float64 else torch.float32, sampling=a.sampling,
                 threads=a.threads, **known_options(a), **opts)

@@ -368,3 +368,70 @@ def test_refine_joint_rejects_bad_sharing_options():
     with pytest.raises(SolverError, match="noise_adaptive"):
         refine_joint(model, obs, layout, theta, groups, loss="l2", delta=1.0, sampling="nearest", sharing=1.0,
                      noise_adaptive=["gloss"])
+
+
+def test_pooled_materials_recover_a_tile_lobe_that_no_single_texel_determines():
+    # 8×8 texels in four 4×4 tiles; each tile one lobe (f0, roughness on the pooled fit's roughness grid), each
+    # texel its own albedo. Three samples per texel, none near the mirror direction: one texel's samples cannot
+    # tell f0 from roughness, the 48 samples of a tile can. Noise-free and rendered by the same model, so the
+    # pooled least squares must return the tile's lobe and a zero cost.
+    from capture.sharing import _chi2_observations, pooled_materials
+    from capture.solvers import _grid_values
+
+    model = _ggx_lambert()
+    layout = Layout.of(model)
+    rough_spec = next(s for s in layout.specs if s.name == "roughness")
+    values = _grid_values(rough_spec, 12, torch.float64, "cpu")
+    lobes = [((0.9, 0.6, 0.3), values[7]), ((0.04, 0.04, 0.04), values[10]),
+             ((0.05, 0.08, 0.12), values[9]), ((0.5, 0.5, 0.5), values[5])]
+    g = torch.Generator().manual_seed(4)
+    maps = {"albedo": torch.rand(8, 8, 3, generator=g, dtype=torch.float64) * 0.6 + 0.2,
+            "f0": torch.empty(8, 8, 3, dtype=torch.float64), "roughness": torch.empty(8, 8, 1, dtype=torch.float64)}
+    for t, (f0, r) in enumerate(lobes):
+        rows, cols = slice(4 * (t // 2), 4 * (t // 2) + 4), slice(4 * (t % 2), 4 * (t % 2) + 4)
+        maps["f0"][rows, cols] = torch.tensor(f0, dtype=torch.float64)
+        maps["roughness"][rows, cols] = float(r)
+    obs = synthetic_observations(model, maps, samples_per_texel=3, highlight_fraction=0.0, seed=2)
+    chi = _chi2_observations(obs, (0.01, 0.1))
+    mats, cost, tile = pooled_materials(model, layout, chi, torch.ones(64, dtype=torch.bool), block=4)
+    assert mats.shape == (4, 4) and tile.reshape(8, 8)[5, 2].item() == 2
+    for t, (f0, r) in enumerate(lobes):
+        torch.testing.assert_close(mats[t], torch.tensor([*f0, float(r)], dtype=torch.float64), rtol=0, atol=1e-6)
+    assert float(cost.max()) < 1e-8
+    # a pool that leaves a tile empty gives it no cost; a model without a separable lobe is not poolable
+    part = torch.ones(64, dtype=torch.bool)
+    part[tile == 3] = False
+    assert float(pooled_materials(model, layout, chi, part, block=4)[1][3]) == 0.0
+    lam = materials.get("lambert")
+    assert pooled_materials(lam, Layout.of(lam), chi, part) is None
+
+
+def test_pooled_proposals_add_a_material_the_anchors_miss_and_nothing_where_they_suffice():
+    model, obs, layout, theta, anchors = _two_material_fit()
+    # the right half (f0 0.04, roughness 0.5) loses its anchors (126 of the 253): without pooling the one material
+    # left must serve both halves (measured: the right half's interior f0 0.11 off, roughness 0.016), with it a
+    # tile proposes the dielectric (f0 0.001 off, roughness 0.0005)
+    right = (torch.arange(256) % 16) >= 8
+    cut = anchors & ~right
+    spoiled = layout.unpack(theta)
+    spoiled["f0"][right] = 0.5
+    spoiled["roughness"][right] = 0.8
+    theta_s = layout.pack(spoiled)
+    interior = right & ((torch.arange(256) % 16) >= 12)       # texels ≥ 2 tiles from the last anchor
+    _, off = share_materials(model, obs, layout, theta_s, cut, candidates=2)
+    out, on = share_materials(model, obs, layout, theta_s, cut, candidates=2, pool_block=4)
+    assert off.get("pooled_tiles") is None and len(off["materials"]) == 1
+    assert on["pooled_tiles"] >= 4
+    rec = layout.unpack(out)
+    err = (rec["roughness"][interior, 0] - 0.5).abs().max()
+    assert float(err) < 0.005, float(err)
+    assert float((rec["f0"][interior] - 0.04).abs().max()) < 0.005
+    # with every anchor present no tile is a blind spot: nothing is proposed, the result is unchanged
+    a, ia = share_materials(model, obs, layout, theta, anchors, candidates=4)
+    b, ib = share_materials(model, obs, layout, theta, anchors, candidates=4, pool_block=4)
+    assert ib["pooled_tiles"] == 0
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="pool_block"):
+        share_materials(model, obs, layout, theta, anchors, pool_block=-1)
+    with pytest.raises(SolverError, match="pooled"):
+        solve_fast(model, obs, pooled=2.5)
