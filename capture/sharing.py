@@ -331,7 +331,7 @@ def _propose_pooled(model: Model, layout, chi: Observations, costs: Tensor, pool
     if res is None:
         return None
     mats, cost, tile = res
-    H, W = chi.map_size
+    W = chi.map_size[1]
     per_tile = lambda x: torch.zeros_like(cost).index_add_(0, tile, x)  # noqa: E731  [T] → [tiles]
     existing = per_tile(torch.where(pool, costs.min(0).values, 0.0))
     # deflated by the pooled fit's misfit (χ² per residual, ≥ 1) as :func:`_excess` deflates a texel's evidence:
@@ -430,11 +430,24 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     gen = torch.Generator().manual_seed(seed)
     centres = kmeans_pp(feats, candidates, gen) * thr                                  # canonical [K, Ps]
     K = centres.shape[0]
-    mat = theta[:K].clone()
-    off = 0
-    for s in shared:
-        mat[:, layout.cols(s.name)] = _from_canon(s, centres[:, off:off + s.channels])
-        off += s.channels
+
+    def as_materials(c):                     # canonical [k, Ps] → θ rows [k, P] (only the shared columns count)
+        m = theta[:c.shape[0]].clone()
+        off = 0
+        for s in shared:
+            m[:, layout.cols(s.name)] = _from_canon(s, c[:, off:off + s.channels])
+            off += s.channels
+        return m
+
+    def under_each(m):                       # per candidate row of m: every texel's closed-form albedo and χ²
+        out = []
+        for k in range(m.shape[0]):
+            th = theta.clone()
+            th[:, scols] = m[k, scols]
+            out.append(_linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0))
+        return torch.stack([o[0] for o in out]), torch.stack([o[1] for o in out])   # [k, T, P], [k, T]
+
+    mat = as_materials(centres)
     chi = _chi2_observations(obs, noise)
     groups = [(c, d) for c, d in _groups(model, layout, obs.dtype) if all(x in scols for x in c)]
     y, w = chi.radiance.to(ACC), chi.weight.to(ACC)
@@ -447,29 +460,14 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     pruned = 0
     with torch.no_grad():
         for rnd in range(rounds):
-            costs, albedo = [], []
-            for k in range(K):
-                th = theta.clone()
-                th[:, scols] = mat[k, scols]
-                cand, cost = _linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
-                costs.append(cost)
-                albedo.append(cand)
-            cands, costs = torch.stack(albedo), torch.stack(costs)                   # [K, T, P], [K, T]
+            cands, costs = under_each(mat)                                            # [K, T, P], [K, T]
             if rnd == 0 and pool_block > 0 and pool_candidates > 0:
                 extra = _propose_pooled(model, layout, chi, costs, own & ~anchors, anchors, residuals, thr, pool_block,
                                         pool_evidence, pool_candidates, gen, info)
                 if extra is not None:
-                    new_mat = theta[:extra.shape[0]].clone()
-                    off = 0
-                    for s in shared:
-                        new_mat[:, layout.cols(s.name)] = _from_canon(s, extra[:, off:off + s.channels])
-                        off += s.channels
-                    for k in range(new_mat.shape[0]):
-                        th = theta.clone()
-                        th[:, scols] = new_mat[k, scols]
-                        cand, cost = _linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
-                        costs = torch.cat([costs, cost[None]])
-                        cands = torch.cat([cands, cand[None]])
+                    new_mat = as_materials(extra)
+                    new_cands, new_costs = under_each(new_mat)
+                    cands, costs = torch.cat([cands, new_cands]), torch.cat([costs, new_costs])
                     mat = torch.cat([mat, new_mat])
                     K = mat.shape[0]
             if min_evidence > 0:
@@ -501,7 +499,6 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                          ).clamp_max(prior_cap)
             label, scale = _assign(costs, observed, H, W, evidence, cap, residuals if misfit else None, prior)
             theta = cands[label, torch.arange(T, device=dev)]
-            del albedo
             decided = {int(x): int((scale == x).sum()) for x in scale[observed].unique()}
             mat = _refit(model, layout, chi, theta, mat, label, scols, groups, y, w, refit_iterations)
         th = theta.clone()
