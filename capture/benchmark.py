@@ -451,9 +451,10 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     GGX + Lambert, 2 point lights, bilinear, noise-free), once per light rig in ``rigs``;
     ``scene="small"``: :func:`capture.synthetic.small_scene` (96 px, 6 views, 32² maps). Rows: the fast
     path (default options), the fast path without reflectance sharing, without the joint bilinear
-    refinement and with a coarse grid (``fast_variants``), and Adam for each ``(lr, iterations)`` of ``adam`` (bilinear
-    sampling). Each row: end-to-end seconds, per-map RMSE on observed texels and on texels where
-    the map is observable, observable fractions, and the process's peak memory so far. ``figure``: write
+    refinement, with a coarse grid and with pooled proposals (``fast_variants``), and Adam for each
+    ``(lr, iterations)`` of ``adam`` (bilinear sampling). Each row: end-to-end seconds, per-map RMSE on
+    observed texels and on texels where the map is observable, observable fractions, and the process's peak
+    memory so far. ``figure``: write
     the Pareto plot there (:func:`plot_reconstruction_pareto`). ``sweeps`` (default scene only): the fast path
     over texture resolution and number of materials (:func:`reconstruction_sweeps`).
     """
@@ -479,7 +480,8 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
             if fast_variants:
                 variants += [("fast, no reflectance sharing", "fast", {"share": False}),
                              ("fast, no joint refinement (nor sharing)", "fast", {"joint_iterations": 0}),
-                             ("fast, coarse grid 8 + 6 refinements", "fast", {"grid": 8, "refine": 6})]
+                             ("fast, coarse grid 8 + 6 refinements", "fast", {"grid": 8, "refine": 6}),
+                             ("fast, pooled proposals (4 × 4 tiles)", "fast", {"pooled": 4})]
             variants += [(f"adam lr {lr} × {it}", "adam", {"lr": lr, "iterations": it}) for lr, it in adam]
             for label, solver, opts in variants:
                 r = reconstruction_run(ds, solver=solver, threads=threads, **opts)
