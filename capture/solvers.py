@@ -52,7 +52,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from materials.geometry import Angles
-from materials.model import Model
+from materials.model import Model, SumModel
 from materials.params import ParamSpec
 
 from .observations import Observations
@@ -557,14 +557,24 @@ def _linear_solve(model: Model, layout: Layout, obs: Observations, theta: Tensor
     p = {k: torch.index_select(x, 0, obs.texel) for k, x in layout.unpack(theta.to(obs.dtype)).items()}
     for s in lin:
         p[s.name] = torch.zeros_like(p[s.name])
-    b = obs.predict(model, p).to(ACC)
+    # a sum of lobes is evaluated part by part, so that a unit change of a linear parameter re-evaluates only the
+    # parts that read it: GGX + Lambert costs 2 specular + 2 Lambert evaluations instead of 3 of both (measured on
+    # the default scene, 2 threads: 56 against 83 ms). Environment lights are evaluated by the whole model.
+    parts = list(model.parts) if isinstance(model, SumModel) and not obs.env_terms else [model]
+    at_zero = [obs.predict(part, p).to(ACC) for part in parts]
+    b = sum(at_zero[1:], at_zero[0])
+
+    def response(q: dict, name: str) -> Tensor:         # change of the prediction from p to q (q differs in `name`)
+        return sum(obs.predict(part, q).to(ACC) - at_zero[j] for j, part in enumerate(parts)
+                   if name in part.param_names)
+
     per_channel = all(s.channels == 3 and sep[s.name] for s in lin)
     cols = []                                             # per column: [S, 3] response to a unit value
     for s in lin:
         if sep[s.name] or s.channels == 1:
             q = dict(p)
             q[s.name] = torch.ones_like(p[s.name])
-            a = obs.predict(model, q).to(ACC) - b
+            a = response(q, s.name)
             if s.channels == 1 or per_channel:
                 cols.append(a)
             else:
@@ -578,7 +588,7 @@ def _linear_solve(model: Model, layout: Layout, obs: Observations, theta: Tensor
                 e = torch.zeros_like(p[s.name])
                 e[:, c] = 1.0
                 q[s.name] = e
-                cols.append(obs.predict(model, q).to(ACC) - b)
+                cols.append(response(q, s.name))
     lo = torch.cat([torch.full((s.channels,), float(s.low), dtype=dt, device=dev) for s in lin])
     hi = torch.cat([torch.full((s.channels,), float(s.high), dtype=dt, device=dev) for s in lin])
     span = torch.where(torch.isfinite(hi), hi - lo, torch.ones_like(hi))
