@@ -545,7 +545,8 @@ def _linear_solve(model: Model, layout: Layout, obs: Observations, theta: Tensor
     With the nonlinear parameters fixed the prediction is ``b + A x`` (x: the linear parameters'
     channels), so per texel ``x = (AᵀWA + λI)⁻¹ (AᵀW(y − b) + λ x_default)`` with a tiny ridge λ
     toward the defaults (keeps unobserved combinations sensible). ``A`` is found by evaluating the
-    model at x = 0 and at each unit x (one evaluation per parameter for separable RGB ones). When
+    model at x = 0 and at each unit x (one evaluation per parameter for separable RGB ones; for a
+    :class:`materials.model.SumModel` only the parts that read that parameter). When
     every linear parameter is a separable RGB one (albedo, f0 under Schlick), the system splits
     into three independent per-channel systems of size #linear (2×2 for GGX + Lambert).
     Bounds: a solution outside the range is clipped ``1e-4``·range inside it (a value on the
