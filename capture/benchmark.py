@@ -454,9 +454,9 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     refinement, with a coarse grid and with pooled proposals (``fast_variants``), and Adam for each
     ``(lr, iterations)`` of ``adam`` (bilinear sampling). Each row: end-to-end seconds, per-map RMSE on
     observed texels and on texels where the map is observable, observable fractions, and the process's peak
-    memory so far. ``figure``: write
-    the Pareto plot there (:func:`plot_reconstruction_pareto`). ``sweeps`` (default scene only): the fast path
-    over texture resolution and number of materials (:func:`reconstruction_sweeps`).
+    memory so far. ``figure``: write the Pareto plot there (:func:`plot_reconstruction_pareto`). ``sweeps``
+    (default scene only): the fast path over texture resolution and number of materials
+    (:func:`reconstruction_sweeps`).
     """
     import tempfile
     from pathlib import Path

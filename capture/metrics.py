@@ -74,7 +74,8 @@ def map_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], mask: Tenso
 
 
 def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], observed: Tensor,
-                         unobservable: Mapping[str, Tensor]) -> dict:
+                         unobservable: Mapping[str, Tensor], regions: Tensor | None = None,
+                         region_names: Mapping[int, str] | None = None) -> dict:
     """Per map: errors on all observed texels, on the observed texels where the map is observable,
     the observable fraction of the observed texels, and the share of the squared error on all observed texels
     that lies in the texels flagged unobservable (``flagged_share``, in [0, 1]; 0 when there is no error).
@@ -87,6 +88,7 @@ def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], o
     Args:
         maps: fitted maps name → ``[H, W, C]`` (the solver's raw values, not the filled ones);
         gt: true maps; observed: ``[H, W]`` bool; unobservable: name → ``[H, W]`` bool.
+        regions, region_names: optional per-region breakdown of both tables, as in :func:`map_errors`.
 
     Returns:
         ``{name: {"observed": {rmse, max, texels}, "observable": {...}, "observable_fraction": f,
@@ -94,8 +96,8 @@ def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], o
     """
     if observed.dim() != 2:
         raise MetricsError(f"observed must be [H, W] bool, got {tuple(observed.shape)}")
-    all_ = map_errors(maps, gt, observed)
-    obs_ = map_errors(maps, gt, observed, exclude=unobservable)
+    all_ = map_errors(maps, gt, observed, regions, region_names)
+    obs_ = map_errors(maps, gt, observed, regions, region_names, exclude=unobservable)
     n = max(int(observed.sum()), 1)
 
     def squared(row: dict) -> float:            # the summed squared error behind an RMSE over `texels` rows

@@ -448,11 +448,12 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     if ds.gt is not None:
         # fitted values (raw) on every observed texel, and on the texels where each map is observable
-        report.errors["maps"] = map_errors(fit.raw, ds.gt.maps, observed, ds.gt.regions, ds.gt.region_names)
-        report.errors["maps_observable"] = map_errors(fit.raw, ds.gt.maps, observed, ds.gt.regions,
-                                                      ds.gt.region_names, exclude=fit.unobservable)
+        both = observability_errors(fit.raw, ds.gt.maps, observed, fit.unobservable, ds.gt.regions,
+                                    ds.gt.region_names)
+        report.errors["maps"] = {k: v["observed"] for k, v in both.items()}
+        report.errors["maps_observable"] = {k: v["observable"] for k, v in both.items()}
         report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
-        report.errors["observability"] = observability_errors(fit.raw, ds.gt.maps, observed, fit.unobservable)
+        report.errors["observability"] = both
         if known_maps:  # how far the given values are from the truth, over the observed texels
             report.errors["known"] = map_errors(known_maps, ds.gt.maps, observed, None, None)
         report.errors["gt_model"] = ds.gt.model
