@@ -62,31 +62,40 @@ __all__ = ["share_materials", "unmatched_texels", "kmeans_pp"]
 MIN_EVIDENCE = 100.0
 
 
-def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, iterations: int = 50) -> Tensor:
+def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, iterations: int = 50,
+              restarts: int = 8) -> Tensor:
     """Cluster centres ``[k', D]`` (k' = min(k, number of distinct points)) of points ``x [N, D]``.
 
     k-means++ seeding (each next seed drawn with probability ∝ squared distance to the nearest seed,
     so separated modes get a seed even when they hold few points), then Lloyd iterations by
-    :class:`kornia.contrib.KMeans` started from those seeds.
+    :class:`kornia.contrib.KMeans` started from those seeds; ``restarts`` draws, keeping the centres with
+    the least within-cluster sum of squares (as scikit-learn's ``n_init``). One draw left the default scene's
+    outcome to chance: the k-means seed alone moved its all-texel f0 / roughness over 0.013–0.030 /
+    0.049–0.074 (docs/reconstruction.md, "Session 10").
     """
     if x.dim() != 2 or x.shape[0] == 0:
         raise ValueError(f"kmeans_pp: x must be [N, D] with N ≥ 1, got {tuple(x.shape)}")
-    if k < 1:
-        raise ValueError(f"kmeans_pp: k must be ≥ 1, got {k}")
+    if k < 1 or restarts < 1:
+        raise ValueError(f"kmeans_pp: k and restarts must be ≥ 1, got {k}, {restarts}")
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
     xs = x.cpu()
-    seeds = [int(torch.randint(xs.shape[0], (1,), generator=gen))]
-    d2 = (xs - xs[seeds[0]]).square().sum(-1)
-    while len(seeds) < k and float(d2.max()) > 1e-12:
-        i = int(torch.multinomial(d2 / d2.sum(), 1, generator=gen))
-        seeds.append(i)
-        d2 = torch.minimum(d2, (xs - xs[i]).square().sum(-1))
-    centres = xs[seeds].clone()
-    if len(seeds) > 1:
-        km = KMeans(len(seeds), centres, tolerance=1e-10, max_iterations=iterations)
-        km.fit(xs)
-        centres = km.cluster_centers
-    return centres.to(x)
+    best, best_ss = None, math.inf
+    for _ in range(restarts):
+        seeds = [int(torch.randint(xs.shape[0], (1,), generator=gen))]
+        d2 = (xs - xs[seeds[0]]).square().sum(-1)
+        while len(seeds) < k and float(d2.max()) > 1e-12:
+            i = int(torch.multinomial(d2 / d2.sum(), 1, generator=gen))
+            seeds.append(i)
+            d2 = torch.minimum(d2, (xs - xs[i]).square().sum(-1))
+        centres = xs[seeds].clone()
+        if len(seeds) > 1:
+            km = KMeans(len(seeds), centres, tolerance=1e-10, max_iterations=iterations)
+            km.fit(xs)
+            centres = km.cluster_centers
+        ss = float(torch.cdist(xs, centres).amin(1).square().sum())
+        if ss < best_ss:
+            best, best_ss = centres, ss
+    return best.to(x)
 
 
 def _chi2_observations(obs: Observations, noise: tuple[float, float]) -> Observations:

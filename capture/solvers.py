@@ -12,8 +12,8 @@ Two paths over the same objective — a (robust) weighted sum over samples s and
      Fresnel, Nielsen's k_s) are solved in *closed form*, per texel, for a grid of values of the
      main nonlinear parameter (roughness); the best grid point per texel initialises
   2. Levenberg-Marquardt on all parameters, vectorised over all texels: residuals of all samples,
-     the Jacobian by forward-mode AD (``torch.func.jvp``; one pass per *parameter* — an RGB
-     parameter whose channels act on separate colour channels takes a single pass), per-texel
+     the per-sample Jacobian by reverse-mode AD (one evaluation, one backward pass per colour
+     channel: a sample's prediction depends only on its own parameters), per-texel
      normal equations ``JᵀWJ [T, P, P]`` and ``JᵀWr [T, P]`` accumulated with ``index_add``, a
      batched damped solve, and per-texel step acceptance with per-texel damping λ_t.
 
@@ -47,7 +47,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
-import torch.autograd.forward_ad as fwAD
 import torch.nn.functional as F
 from torch import Tensor
 
@@ -264,18 +263,16 @@ def _separable(model: Model, spec: ParamSpec, dtype) -> bool:
     g = Angles.from_cosines(nl, nv, lv)
     p = {s.name: torch.rand(64, s.channels, generator=gen, dtype=dtype) * min(s.high - s.low, 1.0) * 0.8
          + s.low + 0.1 * min(s.high - s.low, 1.0) for s in model.params}
-    tangent = {k: torch.zeros_like(x) for k, x in p.items()}
-    tangent[spec.name][:, 0] = 1.0
-
-    def f(q):
-        return model.cosine_brdf(g, q)
-
-    _, jo = torch.func.jvp(f, (p,), (tangent,))
+    q = dict(p)
+    q[spec.name] = p[spec.name].clone()
+    q[spec.name][:, 0] += 0.05 * min(spec.high - spec.low, 1.0)
+    jo = model.cosine_brdf(g, q) - model.cosine_brdf(g, p)
     return bool(jo[:, 1:].abs().max() <= 1e-9 * (jo[:, :1].abs().max() + 1e-30))
 
 
 def _groups(model: Model, layout: Layout, dtype) -> list[tuple[list[int], bool]]:
-    """Jacobian passes: (columns, diagonal?) — a separable RGB parameter is one diagonal pass."""
+    """Parameter groups: (columns, diagonal?) — a separable RGB parameter is one diagonal group (its channel c
+    changes only output channel c). :func:`_jacobian` fills the columns of the groups it is given."""
     out = []
     for s, o in zip(layout.specs, layout.offsets, strict=True):
         if s.channels == 3 and _separable(model, s, dtype):
@@ -287,38 +284,31 @@ def _groups(model: Model, layout: Layout, dtype) -> list[tuple[list[int], bool]]
 
 def _jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups,
               canonical: bool = False) -> tuple[Tensor, Tensor]:
-    """Prediction ``[S, 3]`` and Jacobian ``[S, 3, P]`` wrt per-sample θ ``phi [S, P]`` by forward-mode AD.
+    """Prediction ``[S, 3]`` and Jacobian ``[S, 3, P]`` wrt per-sample θ ``phi [S, P]`` by reverse-mode AD.
+
+    A sample's prediction depends only on its own parameters, so the gradient of ``Σ_s pred_sc`` with
+    respect to ``phi`` holds row s of ``∂pred_c/∂phi`` for every sample: one evaluation and three backward
+    passes (one per colour channel) give the whole Jacobian. The columns of ``groups`` (:func:`_groups`) are
+    filled, the others are zero (frozen parameters). Measured on the default scene (204 000 samples, P = 7,
+    2 threads): 132–144 ms against 196–321 ms for one forward-mode (dual tensor) pass per group — in torch
+    2.13 binary ops on dual tensors run Python reference implementations, and the first one imports
+    ``torch._dynamo`` (~1 s per process).
 
     ``canonical=True``: ``phi`` holds canonical values and the Jacobian is with respect to them.
     """
     S, P = phi.shape
-
-    phi = phi.to(obs.dtype)
     unpack = layout.split if canonical else layout.unpack
-
-    def f(x):
-        return obs.predict(model, unpack(x))
-
+    cols = sorted({c for cs, _ in groups for c in cs})
     J = torch.zeros(S, 3, P, dtype=ACC, device=phi.device)
-    pred = None
-    for cols, diag in groups:
-        t = torch.zeros_like(phi)
-        t[:, cols] = 1.0
-        # native forward-mode AD (dual tensors): same values as torch.func.jvp, less Python overhead
-        with fwAD.dual_level():
-            out = fwAD.unpack_dual(f(fwAD.make_dual(phi, t)))
-            pred, jo = out.primal, out.tangent
-        if jo is None:
-            jo = torch.zeros_like(pred)
-        if diag:
-            for c, col in enumerate(cols):
-                J[:, c, col] = jo[:, c]
-        else:
-            J[:, :, cols[0]] = jo
-    if pred is None:
-        with torch.no_grad():
-            pred = f(phi)
-    return pred.to(ACC), J
+    with torch.enable_grad():
+        x = phi.detach().to(obs.dtype).requires_grad_(bool(cols))
+        pred = obs.predict(model, unpack(x))
+        if cols and pred.requires_grad:
+            for c in range(3):
+                (g,) = torch.autograd.grad(pred[:, c].sum(), x, retain_graph=c < 2, allow_unused=True)
+                if g is not None:
+                    J[:, c, cols] = g[:, cols].to(ACC)
+    return pred.detach().to(ACC), J
 
 
 def _sample_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> Tensor:
@@ -762,8 +752,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
 
     Objective: ``Σ_s weight_s Σ_c ρ(y_sc − L_sc)`` with nearest-texel sampling (each sample reads
     the texel containing its UV), so texels are independent and every texel has its own damping
-    λ_t and step acceptance. One iteration costs one forward-mode pass per parameter (separable RGB
-    parameters: one pass for all three channels) plus one trial evaluation.
+    λ_t and step acceptance. One iteration costs one evaluation with three backward passes (the
+    Jacobian, :func:`_jacobian`) plus one trial evaluation.
 
     Args:
         model: the material model; obs: the observations.
@@ -1274,7 +1264,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
 
     With bilinear sampling a sample reads ``Σ_k w_sk p_k`` of four texels, so texels are coupled
     and the per-texel solve is only an approximation. Starting from it, each outer iteration
-    linearises the full render (per-sample Jacobian ``J_s`` wrt canonical parameters, forward-mode
+    linearises the full render (per-sample Jacobian ``J_s`` wrt canonical parameters, reverse-mode
     AD, stored once) and solves ``(JᵀWJ + λ·diag) δ = JᵀWr`` for all texels jointly by
     preconditioned conjugate gradients (matrix-free: a product gathers δ at the four texels,
     applies ``J_s``, ``J_sᵀW`` and scatters back with the weights; the preconditioner is the exact
