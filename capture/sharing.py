@@ -595,33 +595,47 @@ def _from_canon(spec, x: Tensor) -> Tensor:
                                         spec.high - 1e-6 * min(spec.high - spec.low, 1.0)))
 
 
-def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iterations):
+def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iterations, rtol: float = 1e-5):
     """Levenberg–Marquardt on each material's shared parameters over the samples of its texels
-    (per-texel albedo in ``theta`` held), one damping factor and acceptance per material."""
+    (per-texel albedo in ``theta`` held), one damping factor and acceptance per material.
+
+    A material stops once an accepted step lowers its cost by less than ``rtol`` (relative) and later
+    iterations work on the samples of the materials still moving only. Measured (default scene, 2 threads):
+    every material of the noise-free scenes settles within 2–3 iterations (relative change < 1e-6 after
+    the second), one of the shot-noise scene's still drops 2 % at the fourth. Sharing stage 5.2 → 3.5 s on
+    the default scene, 5.0 → 4.3 s with shot noise, maps unchanged to 4 decimals (docs/reconstruction.md,
+    "Session 11")."""
     from .solvers import ACC, MAX_STEP, _jacobian
 
     K = mat.shape[0]
-    lab_s = label[obs.texel]
     Ps = len(scols)
+    dev = y.device
+    lab_all = label[obs.texel]
+    lam = torch.full((K,), 1e-3, dtype=ACC, device=dev)
+    active = torch.ones(K, dtype=torch.bool, device=dev)
+    sub, lab_s, ys, ws, th_s = obs, lab_all, y, w, theta[obs.texel]     # the samples of the active materials
 
     def per_sample(m):
-        ph = theta[obs.texel].clone()
+        ph = th_s.clone()
         ph[:, scols] = m[lab_s][:, scols]
         return ph
 
-    def cost_of(m):
-        pred = obs.predict(model, layout.unpack(per_sample(m).to(obs.dtype))).to(ACC)
-        return torch.zeros(K, dtype=ACC, device=y.device).index_add(0, lab_s, ((y - pred) ** 2).sum(-1) * w)
+    def cost_of(m):          # [K]: exact for the active materials (all their samples are in ``sub``)
+        pred = sub.predict(model, layout.unpack(per_sample(m).to(sub.dtype))).to(ACC)
+        return torch.zeros(K, dtype=ACC, device=dev).index_add(0, lab_s, ((ys - pred) ** 2).sum(-1) * ws)
 
     cur = cost_of(mat)
-    lam = torch.full((K,), 1e-3, dtype=ACC, device=y.device)
     for _ in range(iterations):
-        pred, J = _jacobian(model, layout, obs, per_sample(mat), groups)
-        r = y - pred
+        if int(torch.bincount(lab_s, minlength=K)[~active].sum()) > 0:
+            keep = active[lab_all]
+            sub, lab_s, ys, ws, th_s = obs.select(keep), lab_all[keep], y[keep], w[keep], theta[obs.texel[keep]]
+        start = cur
+        pred, J = _jacobian(model, layout, sub, per_sample(mat), groups)
+        r = ys - pred
         Js = J[:, :, scols]
-        A = torch.zeros(K, Ps, Ps, dtype=ACC, device=y.device).index_add(
-            0, lab_s, torch.einsum("scp,s,scq->spq", Js, w, Js))
-        g = torch.zeros(K, Ps, dtype=ACC, device=y.device).index_add(0, lab_s, torch.einsum("scp,s,sc->sp", Js, w, r))
+        A = torch.zeros(K, Ps, Ps, dtype=ACC, device=dev).index_add(
+            0, lab_s, torch.einsum("scp,s,scq->spq", Js, ws, Js))
+        g = torch.zeros(K, Ps, dtype=ACC, device=dev).index_add(0, lab_s, torch.einsum("scp,s,sc->sp", Js, ws, r))
         d = torch.diagonal(A, dim1=-2, dim2=-1)
         for _attempt in range(4):
             M = A + lam[:, None, None] * torch.diag_embed(d + 1e-12 * d.mean(-1, keepdim=True).clamp_min(1e-30))
@@ -630,10 +644,15 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
             trial = mat.clone()
             trial[:, scols] = trial[:, scols] + step
             new = cost_of(trial)
-            acc = new < cur
+            acc = (new < cur) & active
             mat = torch.where(acc[:, None], trial, mat)
             cur = torch.where(acc, new, cur)
             lam = torch.where(acc, (lam / 3).clamp_min(1e-12), (lam * 4).clamp_max(1e12))
-            if bool(acc.all()):
+            if bool(acc[active].all()):
                 break
+        # settled: a step was taken and it changed the cost by less than rtol (a material whose every attempt
+        # failed keeps its raised damping for the next iteration, as before)
+        active = active & ((cur == start) | (start - cur > rtol * start))
+        if not bool(active.any()):
+            break
     return mat
