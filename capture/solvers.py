@@ -618,13 +618,18 @@ def _linear_solve(model: Model, layout: Layout, obs: Observations, theta: Tensor
                                                  torch.where(clip, xc, torch.zeros_like(xc))), xc)
         x2 = torch.linalg.solve_ex(Mf, rf)[0]
         x = torch.where(clip, xc, x2).clamp(lo_c, hi_c)
-    if per_channel:
-        xflat = x.transpose(-1, -2).reshape(T, -1)                                       # [T, Lp·3]
-        pred = b + (A * torch.index_select(x, 0, obs.texel)).sum(-1)
+    xflat = x.transpose(-1, -2).reshape(T, -1) if per_channel else x[:, 0]           # [T, L] in [param][channel]
+    if loss == "l2":
+        # Σ_s w_s ‖y_s − b_s − A_s x‖² = c₀ − 2 xᵀ rhs + xᵀ M x per texel, from the normal equations (without
+        # the ridge): no per-sample prediction. Measured on the default scene: 57 → 14 ms of a 167 ms solve
+        c0 = torch.zeros(T, dtype=dt, device=dev).index_add(0, obs.texel, (y - b).square().sum(-1) * w)
+        cost = (c0 + (x * ((M @ x[..., None])[..., 0] - 2 * rhs)).sum((-2, -1))).clamp_min(0.0)
     else:
-        xflat = x[:, 0]
-        pred = b + torch.einsum("scp,sp->sc", A, torch.index_select(xflat, 0, obs.texel))
-    cost = _texel_cost(obs, pred, loss, delta)
+        if per_channel:
+            pred = b + (A * torch.index_select(x, 0, obs.texel)).sum(-1)
+        else:
+            pred = b + torch.einsum("scp,sp->sc", A, torch.index_select(xflat, 0, obs.texel))
+        cost = _texel_cost(obs, pred, loss, delta)
     cand = theta.clone()
     off = 0
     for s in lin:
