@@ -451,7 +451,8 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     GGX + Lambert, 2 point lights, bilinear, noise-free), once per light rig in ``rigs``;
     ``scene="small"``: :func:`capture.synthetic.small_scene` (96 px, 6 views, 32² maps). Rows: the fast
     path (default options), the fast path without reflectance sharing, without the joint bilinear
-    refinement, with a coarse grid and with pooled proposals (``fast_variants``), and Adam for each
+    refinement, with a coarse grid and with pooled proposals flipped from their default (on for static lights,
+    :func:`capture.reconstruct.static_lights`) (``fast_variants``), and Adam for each
     ``(lr, iterations)`` of ``adam`` (bilinear sampling). Each row: end-to-end seconds, per-map RMSE on
     observed texels and on texels where the map is observable, observable fractions, and the process's peak
     memory so far. ``figure``: write the Pareto plot there (:func:`plot_reconstruction_pareto`). ``sweeps``
@@ -461,6 +462,7 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     import tempfile
     from pathlib import Path
 
+    from .reconstruct import static_lights
     from .report import replace_section
     from .synthetic import default_scene, make_synthetic, small_scene
 
@@ -475,13 +477,16 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
             ds = make_synthetic(cfg, Path(d) / f"ds_{rig}")
             from .dataset import load_dataset
 
-            cov = load_dataset(ds).meta.get("highlight_coverage", {}).get("coverage")
+            loaded = load_dataset(ds)
+            cov = loaded.meta.get("highlight_coverage", {}).get("coverage")
             variants = [("fast", "fast", {})]
             if fast_variants:
+                # the other side of reconstruct's pooled-proposal default (on for static lights only)
+                pooled = ("fast, without pooled proposals", "fast", {"pooled": 0}) if static_lights(loaded.views)[0] \
+                    else ("fast, pooled proposals (4 × 4 tiles)", "fast", {"pooled": 4})
                 variants += [("fast, no reflectance sharing", "fast", {"share": False}),
                              ("fast, no joint refinement (nor sharing)", "fast", {"joint_iterations": 0}),
-                             ("fast, coarse grid 8 + 6 refinements", "fast", {"grid": 8, "refine": 6}),
-                             ("fast, pooled proposals (4 × 4 tiles)", "fast", {"pooled": 4})]
+                             ("fast, coarse grid 8 + 6 refinements", "fast", {"grid": 8, "refine": 6}), pooled]
             variants += [(f"adam lr {lr} × {it}", "adam", {"lr": lr, "iterations": it}) for lr, it in adam]
             for label, solver, opts in variants:
                 r = reconstruction_run(ds, solver=solver, threads=threads, **opts)

@@ -79,7 +79,7 @@ def _add_synth_args(p: argparse.ArgumentParser) -> None:
 def _cmd_reconstruct(args) -> int:
     from capture.reconstruct import reconstruct
 
-    extra = {"pooled": args.pooled} if args.pooled else {}
+    extra = {"pooled": args.pooled} if args.pooled is not None else {}
     report = reconstruct(args.dataset, model=args.model, out_dir=args.out, force=args.force,
                          solver=args.solver, loss=args.loss, texture_size=args.tex, **known_options(args), **extra)
     summary = Path(args.out) / "summary.txt"
@@ -100,9 +100,11 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
 
 def add_pooled_arg(p: argparse.ArgumentParser) -> None:
     """``--pooled N``: the fast path's pooled material proposals (``solve_fast(pooled=N)``)."""
-    p.add_argument("--pooled", type=int, default=0, metavar="N",
-                   help="fast path: let N×N-texel tiles without an anchor propose materials of their own "
-                        "(try 4 with fixed lights, where a rough material shows no highlight peak; 0 = off)")
+    p.add_argument("--pooled", type=int, default=None, metavar="N",
+                   help="fast path: let N×N-texel tiles without an anchor propose materials of their own; "
+                        "default: 4 when the lights stay fixed relative to the object (studio lamps, a dome: a "
+                        "rough material may show no highlight peak), off when they move with the camera "
+                        "(flash, turntable); 0 = off")
 
 
 def add_known_args(p: argparse.ArgumentParser) -> None:

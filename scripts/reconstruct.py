@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     from capture.reconstruct import reconstruct
 
     opts = {k: v for k, v in (("iterations", a.iterations), ("grid", a.grid), ("schedule", a.schedule),
-                              ("smoothness", a.smoothness), ("pooled", a.pooled or None)) if v is not None}
+                              ("smoothness", a.smoothness), ("pooled", a.pooled)) if v is not None}
     reconstruct(a.dataset, model=a.model, out_dir=a.out, force=a.force, solver=a.solver, loss=a.loss,
                 texture_size=a.tex, dtype=torch.float64 if a.float64 else torch.float32, sampling=a.sampling,
                 threads=a.threads, **known_options(a), **opts)

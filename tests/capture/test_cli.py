@@ -52,3 +52,18 @@ def test_known_values_are_parsed_and_bad_ones_named(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tmp_path / "d"), "--out", str(tmp_path / "o"), "--known", "coat_ior"])
     assert "NAME=VALUE" in capsys.readouterr().err
+
+
+def test_pooled_zero_on_the_command_line_turns_the_static_light_default_off(tmp_path, capsys):
+    # `--pooled 0` must reach reconstruct as pooled=0 (off), not be dropped as falsy and become the rig's default
+    import json
+
+    from capture.synthetic import make_synthetic, small_scene
+
+    make_synthetic(small_scene("ggx-lambert", image_size=32, texture_size=8, n_views=3, light_rig="fixed"),
+                   tmp_path / "d")
+    for flag, block in ((["--pooled", "0"], 0), ([], 4)):
+        out = tmp_path / f"o{block}"
+        assert main(["reconstruct", str(tmp_path / "d"), "--model", "ggx-lambert", "--out", str(out), *flag]) == 0
+        assert json.loads((out / "report.json").read_text())["fit"]["pooled"]["block"] == block
+    capsys.readouterr()

@@ -156,6 +156,35 @@ def test_fixed_lights_resolve_what_the_flash_rig_cannot(tmp_path):
     assert e["albedo"]["rmse"] < 1e-3 and e["f0"]["rmse"] < 0.01 and e["roughness"]["rmse"] < 0.005, e
 
 
+@pytest.mark.parametrize("rig, camera_rig, static", [("flash", "orbit", False), ("fixed", "orbit", True),
+                                                      ("dome", "orbit", True), ("fixed", "turntable", False)])
+def test_static_lights_tell_studio_lamps_from_a_flash(rig, camera_rig, static):
+    # world-fixed lamps (fixed rig, dome) light every view from the same 2 positions; a flash moves with the camera
+    # (12 positions for 6 views × 2 lights), and so do studio lamps under a turntable in the object's frame: its two
+    # lamps sit 180° apart, so each of the 6 positions lights 2 of the 6 views (not static)
+    from capture.reconstruct import static_lights
+    from capture.synthetic import build_scene
+
+    cfg = small_scene("ggx-lambert", image_size=32, texture_size=8, n_views=6, light_rig=rig, camera_rig=camera_rig)
+    got, n_lights, pairs = static_lights(build_scene(cfg).views)
+    assert (got, n_lights, pairs) == (static, {"flash": 12, "fixed": 2, "dome": 2}[rig] if camera_rig == "orbit"
+                                      else 6, 12)
+
+
+def test_reconstruct_turns_pooled_proposals_on_for_static_lights_only(tmp_path):
+    # the default follows the rig (report and summary say so); an explicit pooled=0 wins over it
+    for rig, block in (("fixed", 4), ("flash", 0)):
+        make_synthetic(small_scene("ggx-lambert", image_size=48, texture_size=16, n_views=4, light_rig=rig),
+                       tmp_path / rig)
+        rep = reconstruct(tmp_path / rig, model="ggx-lambert", out_dir=tmp_path / f"o_{rig}", progress=False)
+        assert rep.fit["pooled"]["block"] == block and rep.fit["pooled"]["auto"], rep.fit["pooled"]
+        said = "pooled material proposals: 4 × 4-texel tiles (the lights stay fixed" in \
+            (tmp_path / f"o_{rig}" / "summary.txt").read_text()
+        assert said == (block == 4)
+    rep = reconstruct(tmp_path / "fixed", model="ggx-lambert", out_dir=tmp_path / "o_off", progress=False, pooled=0)
+    assert rep.fit["pooled"] == {"block": 0, "auto": False}
+
+
 def test_errors_shrink_as_views_are_added_with_noise(tmp_path):
     # Lambert, shot + read noise, 8-bit sRGB PNG photos (quantised), nearest sampling, 32² maps:
     # measured albedo RMSE on observed texels 0.0234 (2 views) → 0.0075 (8 views); ratio ≤ 0.75 required
