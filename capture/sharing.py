@@ -458,7 +458,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
 
     mat = as_materials(centres)
     chi = _chi2_observations(obs, noise)
-    groups = [(c, d) for c, d in _groups(model, layout, obs.dtype) if all(x in scols for x in c)]
+    groups = [c for c in _groups(layout) if all(x in scols for x in c)]
     y, w = chi.radiance.to(ACC), chi.weight.to(ACC)
     label = torch.zeros(T, dtype=torch.long, device=dev)
     residuals = 3.0 * torch.bincount(obs.texel, minlength=T).to(ACC)
@@ -626,7 +626,7 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
 
     cur = cost_of(mat)
     for _ in range(iterations):
-        if int(torch.bincount(lab_s, minlength=K)[~active].sum()) > 0:
+        if not bool(active[lab_s].all()):                  # drop the samples of settled materials
             keep = active[lab_all]
             sub, lab_s, ys, ws, th_s = obs.select(keep), lab_all[keep], y[keep], w[keep], theta[obs.texel[keep]]
         start = cur

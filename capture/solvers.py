@@ -270,16 +270,10 @@ def _separable(model: Model, spec: ParamSpec, dtype) -> bool:
     return bool(jo[:, 1:].abs().max() <= 1e-9 * (jo[:, :1].abs().max() + 1e-30))
 
 
-def _groups(model: Model, layout: Layout, dtype) -> list[tuple[list[int], bool]]:
-    """Parameter groups: (columns, diagonal?) — a separable RGB parameter is one diagonal group (its channel c
-    changes only output channel c). :func:`_jacobian` fills the columns of the groups it is given."""
-    out = []
-    for s, o in zip(layout.specs, layout.offsets, strict=True):
-        if s.channels == 3 and _separable(model, s, dtype):
-            out.append((list(range(o, o + 3)), True))
-        else:
-            out.extend(([c], False) for c in range(o, o + s.channels))
-    return out
+def _groups(layout: Layout) -> list[list[int]]:
+    """The θ columns of each parameter. A caller freezes parameters by leaving their group out; :func:`_jacobian`
+    fills the columns of the groups it is given and leaves the others zero."""
+    return [list(range(o, o + s.channels)) for s, o in zip(layout.specs, layout.offsets, strict=True)]
 
 
 def _jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups,
@@ -298,7 +292,7 @@ def _jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, grou
     """
     S, P = phi.shape
     unpack = layout.split if canonical else layout.unpack
-    cols = sorted({c for cs, _ in groups for c in cs})
+    cols = sorted({c for cs in groups for c in cs})
     J = torch.zeros(S, 3, P, dtype=ACC, device=phi.device)
     with torch.enable_grad():
         x = phi.detach().to(obs.dtype).requires_grad_(bool(cols))
@@ -873,7 +867,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     T, P, H, W = obs.n_texels, layout.P, *obs.map_size
     dt, dev = ACC, obs.device
     theta = _init_theta(model, layout, obs, init).to(ACC)
-    groups = _groups(model, layout, obs.dtype)
+    groups = _groups(layout)
     t_grid = time.perf_counter()
     lin_specs = [s for s in layout.specs if s.linear]
     sep = {s.name: (s.channels == 3 and _separable(model, s, obs.dtype)) for s in lin_specs}
@@ -885,7 +879,6 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     theta, info = _closed_form_init(model, layout, obs, theta, grid, loss, delta, sep, refine,
                                     fixed=tuple(init or ()))
     info["grid_s"] = time.perf_counter() - t_grid
-    info["jacobian_passes"] = len(groups)
     observed = torch.zeros(T, dtype=torch.bool, device=dev)
     observed[obs.texel] = True
     lin_cols = [c for s in layout.specs if s.linear for c in layout.cols(s.name)]
@@ -909,7 +902,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     for stage, cols, n_it in stages:
         free = torch.zeros(P, dtype=torch.bool, device=dev)
         free[cols] = True
-        sgroups = [(c, d) for c, d in groups if all(free[x] for x in c)]
+        sgroups = [c for c in groups if all(free[x] for x in c)]
         stall = 0
         active = observed.clone()
         for _ in range(n_it):
@@ -1554,7 +1547,7 @@ def solve_adam(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
             break
     theta = theta.detach()
-    groups = _groups(model, layout, obs.dtype)
+    groups = _groups(layout)
     return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,
                      noise=_check_noise(noise), history=history, iterations=it, t0=t0, solver="adam",
                      info={"lr": lr, "sampling": sampling}, sampling=sampling)

@@ -380,7 +380,7 @@ def test_refine_joint_rejects_bad_sharing_options():
     obs = synthetic_observations(model, _two_material_scene(), samples_per_texel=2)
     layout = Layout.of(model)
     theta = torch.zeros(obs.n_texels, layout.P, dtype=torch.float64)
-    groups = _groups(model, layout, obs.dtype)
+    groups = _groups(layout)
     with pytest.raises(SolverError, match="not parameters"):
         refine_joint(model, obs, layout, theta, groups, loss="l2", delta=1.0, sampling="nearest", sharing=1.0,
                      sharing_params=["gloss"])
@@ -474,7 +474,7 @@ def test_refit_recovers_the_materials_and_stops_those_that_have_settled():
     theta = layout.pack({k: v.reshape(256, -1) for k, v in gt.items()})
     label = (torch.arange(256) % 16 >= 8).long()
     scols = layout.cols("f0") + layout.cols("roughness")
-    groups = [(c, d) for c, d in _groups(model, layout, obs.dtype) if all(x in scols for x in c)]
+    groups = [c for c in _groups(layout) if all(x in scols for x in c)]
     truth = theta[[0, 8]].clone()
     start = layout.unpack(truth)
     start["roughness"][1] += 0.1

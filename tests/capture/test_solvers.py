@@ -67,7 +67,7 @@ def test_posterior_std_flags_the_albedo_f0_trade_off():
         gt["roughness"] = torch.full((4, 4, 1), 0.95, dtype=torch.float64)
         obs = synthetic_observations(model, gt, samples_per_texel=spt, highlight_fraction=0.0)
         canon = torch.cat([gt[s.name].reshape(16, -1) for s in lay.specs], -1)
-        std, observed, pred = posterior_std(model, lay, obs, canon, _groups(model, lay, torch.float64))
+        std, observed, pred = posterior_std(model, lay, obs, canon, _groups(lay))
         assert observed.all()
         torch.testing.assert_close(pred, obs.radiance)
         med[spt] = {k: float(std[:, lay.cols(k)].median()) for k in ("albedo", "f0", "roughness")}
@@ -89,7 +89,7 @@ def test_posterior_std_with_a_bilinear_footprint():
     gt = _maps(4, 4)
     obs = synthetic_observations(model, gt, samples_per_texel=8)
     canon = torch.cat([gt[s.name].reshape(16, -1) for s in lay.specs], -1)
-    groups = _groups(model, lay, torch.float64)
+    groups = _groups(lay)
     near, observed, _ = posterior_std(model, lay, obs, canon, groups)
     g = torch.Generator().manual_seed(5)
     S = obs.n_samples
@@ -260,8 +260,8 @@ def test_jacobian_matches_central_differences_in_float64(name, canonical):
     obs = synthetic_observations(model, maps, samples_per_texel=6)
     canon = torch.cat([maps[s.name].reshape(9, -1) for s in lay.specs], -1)
     phi = (canon if canonical else lay.pack({k: v.reshape(9, -1) for k, v in maps.items()}))[obs.texel]
-    groups = _groups(model, lay, torch.float64)
-    frozen = groups[-1][0]
+    groups = _groups(lay)
+    frozen = groups[-1]
     pred, J = _jacobian(model, lay, obs, phi, groups[:-1], canonical=canonical)
     unpack = lay.split if canonical else lay.unpack
     torch.testing.assert_close(pred.double(), obs.predict(model, unpack(phi)).double(), rtol=1e-12, atol=1e-14)
