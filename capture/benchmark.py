@@ -330,7 +330,9 @@ def reconstruction_run(dataset, model: str = "ggx-lambert", solver: str = "fast"
     """Reconstruct ``dataset`` once into a temporary folder and return the numbers of a benchmark row.
 
     Returns a dict: ``seconds`` (end to end), ``times`` (per stage), ``rmse_observed`` /
-    ``rmse_observable`` (per map, fitted values), ``observable_fraction`` (per map), ``fit`` (solver
+    ``rmse_observable`` / ``rmse_determined`` (per map, fitted values; the last on the texels the photos determine
+    at the true maps, :func:`capture.metrics.determined_at_truth`, empty when another model rendered the
+    photos), ``observable_fraction`` (per map), ``fit`` (solver
     info without long lists), ``skipped``, ``peak_rss_mib`` (process peak so far), ``threads``.
     """
     import tempfile
@@ -353,6 +355,7 @@ def reconstruction_run(dataset, model: str = "ggx-lambert", solver: str = "fast"
         "seconds": seconds, "times": rep.times, "threads": threads or old,
         "rmse_observed": {k: v["rmse"] for k, v in rep.errors.get("maps", {}).items()},
         "rmse_observable": {k: v["rmse"] for k, v in rep.errors.get("maps_observable", {}).items()},
+        "rmse_determined": {k: v["rmse"] for k, v in rep.errors.get("maps_determined_at_truth", {}).items()},
         "observable_fraction": rep.coverage.get("observable_fraction", {}),
         "observed_texels": rep.coverage.get("observed"), "fit": fit, "skipped": rep.skipped,
         "samples": rep.samples, "peak_rss_mib": _peak_rss_mib(),
@@ -454,7 +457,8 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     refinement, with a coarse grid and with pooled proposals flipped from their default (on for static lights,
     :func:`capture.reconstruct.static_lights`) (``fast_variants``), and Adam for each
     ``(lr, iterations)`` of ``adam`` (bilinear sampling). Each row: end-to-end seconds, per-map RMSE on
-    observed texels and on texels where the map is observable, observable fractions, and the process's peak
+    observed texels, on texels where the map is observable (judged at the estimate) and on those the photos
+    determine at the true maps, observable fractions, and the process's peak
     memory so far. ``figure``: write the Pareto plot there (:func:`plot_reconstruction_pareto`). ``sweeps``
     (default scene only): the fast path over texture resolution and number of materials
     (:func:`reconstruction_sweeps`).
@@ -493,11 +497,16 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
                 rows.append({"rig": rig, "highlight_coverage": cov, "label": label, **r})
     used = threads or torch.get_num_threads()
     lines = [f"Machine: {machine_description(threads=used)} (the reconstructions' setting); scene `{scene}`.", "",
-             "| rig (highlight cov.) | solver | s | albedo obs. / obsv. | f0 obs. / obsv. | roughness obs. / obsv. "
-             "| observable % (a/f0/r) | peak MiB |", "|---|---|---|---|---|---|---|---|"]
+             "RMSE per map on observed texels (obs.), on those where the map is observable, judged at the estimate "
+             "(obsv.), and on those the photos determine at the true maps (det.; the same posterior test at the "
+             "truth, a set no estimate chooses).", "",
+             "| rig (highlight cov.) | solver | s | albedo obs. / obsv. / det. | f0 obs. / obsv. / det. | roughness "
+             "obs. / obsv. / det. | observable % (a/f0/r) | peak MiB |", "|---|---|---|---|---|---|---|---|"]
+    nan = float("nan")
     for r in rows:
         def cell(k, r=r):
-            return f"{r['rmse_observed'].get(k, float('nan')):.4f} / {r['rmse_observable'].get(k, float('nan')):.4f}"
+            return (f"{r['rmse_observed'].get(k, nan):.4f} / {r['rmse_observable'].get(k, nan):.4f} / "
+                    f"{r['rmse_determined'].get(k, nan):.4f}")
         fr = r["observable_fraction"]
         lines.append(f"| {r['rig']} ({(r['highlight_coverage'] or 0):.0%}) | {r['label']} | {r['seconds']:.1f} | "
                      f"{cell('albedo')} | {cell('f0')} | {cell('roughness')} | "

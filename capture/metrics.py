@@ -6,6 +6,8 @@
 * :func:`observability_errors` — the same on all observed texels *and* on the texels where each
   map is observable, with the observable fraction and the share of the error in the texels flagged
   unobservable (what the report's error table shows).
+* :func:`determined_at_truth` — the texels where the photos determine each map *at the true maps*: the
+  estimate-independent counterpart of the fit's observability (judged at its estimate), for synthetic scenes.
 * :func:`image_metrics` — PSNR and SSIM (``kornia.metrics``) of a re-rendered view against its
   photo, over the image (background is 0 in both), with the peak taken as the photo's maximum.
 """
@@ -17,7 +19,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-__all__ = ["map_errors", "observability_errors", "image_metrics", "MetricsError"]
+__all__ = ["map_errors", "observability_errors", "determined_at_truth", "image_metrics", "MetricsError"]
 
 
 class MetricsError(ValueError):
@@ -75,10 +77,13 @@ def map_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], mask: Tenso
 
 def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], observed: Tensor,
                          unobservable: Mapping[str, Tensor], regions: Tensor | None = None,
-                         region_names: Mapping[int, str] | None = None) -> dict:
+                         region_names: Mapping[int, str] | None = None,
+                         determined: Mapping[str, Tensor] | None = None) -> dict:
     """Per map: errors on all observed texels, on the observed texels where the map is observable,
     the observable fraction of the observed texels, and the share of the squared error on all observed texels
     that lies in the texels flagged unobservable (``flagged_share``, in [0, 1]; 0 when there is no error).
+    With ``determined`` (name → ``[H, W]`` bool, :func:`determined_at_truth`) also the errors on the observed
+    texels the photos determine at the true maps (``"determined"``) and their fraction (``determined_fraction``).
 
     ``flagged_share`` says whether the tool knew where it was wrong: near 1, the error is where the report
     warned that the photos cannot tell; well below 1, texels called determined are wrong (e.g. a second basin
@@ -92,10 +97,15 @@ def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], o
 
     Returns:
         ``{name: {"observed": {rmse, max, texels}, "observable": {...}, "observable_fraction": f,
-        "flagged_share": s}}``.
+        "flagged_share": s}}``, plus ``"determined"`` and ``"determined_fraction"`` for the names in
+        ``determined``.
     """
     if observed.dim() != 2:
         raise MetricsError(f"observed must be [H, W] bool, got {tuple(observed.shape)}")
+    for k, m in (determined or {}).items():
+        if m.shape != observed.shape or m.dtype != torch.bool:
+            raise MetricsError(f"determined['{k}'] must be an [H, W] bool mask like observed "
+                               f"{tuple(observed.shape)}, got {m.dtype} {tuple(m.shape)}")
     all_ = map_errors(maps, gt, observed, regions, region_names)
     obs_ = map_errors(maps, gt, observed, regions, region_names, exclude=unobservable)
     n = max(int(observed.sum()), 1)
@@ -109,7 +119,51 @@ def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], o
         out[k] = {"observed": all_[k], "observable": obs_[k],
                   "observable_fraction": float((observed & ~unobservable[k]).sum()) / n if k in unobservable else 1.0,
                   "flagged_share": min(max(1.0 - squared(obs_[k]) / total, 0.0), 1.0) if total > 0 else 0.0}
+        if determined is not None and k in determined:
+            out[k]["determined"] = map_errors({k: maps[k]}, gt, observed & determined[k], regions, region_names)[k]
+            out[k]["determined_fraction"] = float((observed & determined[k]).sum()) / n
     return out
+
+
+def determined_at_truth(model, obs, gt: Mapping[str, Tensor], *, sampling: str = "nearest",
+                        noise=None, observable_std=None) -> dict[str, Tensor]:
+    """Per parameter of ``model``: ``[H, W]`` bool, the observed texels whose value the photos determine
+    *at the true maps* ``gt`` — the marginal posterior std of :func:`capture.solvers.posterior_std` (same
+    noise model, sampling and thresholds as a fit's observability test) evaluated at the truth, below the
+    parameter's threshold.
+
+    A fit judges observability at its own estimate, so a texel stuck in a wrong basin can be called
+    determined, and the error "where observable" is measured on a set the estimate chose. This mask does not
+    depend on any estimate: the error over it says how well the solver recovers what the photos *can* tell,
+    and a large error there is a texel the photos decide that the solver got wrong. Only for synthetic scenes
+    whose ``model`` rendered the photos (its true maps known).
+
+    Args:
+        model: the model that rendered the photos (every parameter's true map in ``gt``).
+        obs: the observations (:class:`capture.observations.Observations`) of the fit.
+        gt: name → true map ``[H, W, C]`` in canonical units, ``(H, W) = obs.map_size``.
+        sampling: "nearest" or "bilinear", as the fit's; noise, observable_std: as the fit's (None = defaults).
+    """
+    from .solvers import ACC, NOISE, Layout, _groups, posterior_std, std_threshold
+
+    H, W = obs.map_size
+    layout = Layout.of(model)
+    missing = [s.name for s in layout.specs if s.name not in gt]
+    if missing:
+        raise MetricsError(f"determined_at_truth: the true maps lack {missing} of model '{model.name}'; pass the "
+                           f"maps of the model that rendered the photos")
+    bad = [s.name for s in layout.specs if tuple(gt[s.name].shape) != (H, W, s.channels)]
+    if bad:
+        raise MetricsError(f"determined_at_truth: true maps {bad} are not [{H}, {W}, C] like the observations' "
+                           f"map size; resample them to the fit's texture size")
+    if sampling not in ("nearest", "bilinear"):
+        raise MetricsError(f"determined_at_truth: sampling must be 'nearest' or 'bilinear', got {sampling!r}")
+    T = H * W
+    canon = torch.cat([gt[s.name].reshape(T, s.channels).to(obs.device, ACC) for s in layout.specs], -1)
+    std, observed, _ = posterior_std(model, layout, obs, canon, _groups(layout), noise=NOISE if noise is None
+                                     else noise, sampling=sampling)
+    return {s.name: (observed & (std[:, o:o + s.channels].amax(-1) < std_threshold(s, observable_std))).reshape(H, W)
+            for s, o in zip(layout.specs, layout.offsets, strict=True)}
 
 
 def image_metrics(rendered: Tensor, photo: Tensor, mask: Tensor | None = None) -> dict:

@@ -492,14 +492,24 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     # -- metrics --------------------------------------------------------------------------------
     t = time.perf_counter()
-    from .metrics import image_metrics, map_errors, observability_errors
+    from .metrics import determined_at_truth, image_metrics, map_errors, observability_errors
 
     if ds.gt is not None:
-        # fitted values (raw) on every observed texel, and on the texels where each map is observable
+        # fitted values (raw) on every observed texel, on the texels where each map is observable (judged at the
+        # estimate) and, when the photos were rendered by the fitted model, on those it is determined at the truth
+        determined = None
+        gt_model = ds.gt.build_model()
+        if gt_model.name == getattr(mdl, "base", mdl).name and all(
+                tuple(m.shape[:2]) == tuple(obs.map_size) for m in ds.gt.maps.values()):
+            determined = determined_at_truth(gt_model, obs, ds.gt.maps, sampling=sampling,
+                                             noise=options.get("noise"), observable_std=options.get("observable_std"))
         both = observability_errors(fit.raw, ds.gt.maps, observed, fit.unobservable, ds.gt.regions,
-                                    ds.gt.region_names)
+                                    ds.gt.region_names, determined=determined)
         report.errors["maps"] = {k: v["observed"] for k, v in both.items()}
         report.errors["maps_observable"] = {k: v["observable"] for k, v in both.items()}
+        if determined is not None:
+            report.errors["maps_determined_at_truth"] = {k: v["determined"] for k, v in both.items()
+                                                         if "determined" in v}
         report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
         report.errors["observability"] = both
         if known_maps:  # how far the given values are from the truth, over the observed texels
@@ -606,14 +616,21 @@ def _summary(r: Report) -> str:
         lines.append("auto: " + " → ".join(f"{s['model']} (held-out MAE {s['heldout_mae']:.4g})"
                                            for s in r.selection))
     if "maps" in r.errors:
+        truth = r.errors.get("maps_determined_at_truth", {})
         lines.append("errors vs ground truth, RMSE / max: on observed texels | on texels where the map is observable "
-                     "(fraction observable) | share of the squared error in texels flagged unobservable")
+                     "(fraction observable) | share of the squared error in texels flagged unobservable"
+                     + (" | on texels the photos determine at the true maps (fraction)" if truth else ""))
         frac = r.coverage.get("observable_fraction", {})
+        nan = float("nan")
         for k, v in r.errors["maps"].items():
             o = r.errors.get("maps_observable", {}).get(k, {})
-            flagged = r.errors.get("observability", {}).get(k, {}).get("flagged_share", float("nan"))
-            lines.append(f"  {k:14s} {v['rmse']:.5f} / {v['max']:.5f} | {o.get('rmse', float('nan')):.5f} / "
-                         f"{o.get('max', float('nan')):.5f} ({frac.get(k, float('nan')):.1%}) | {flagged:.1%}")
+            ob = r.errors.get("observability", {}).get(k, {})
+            line = (f"  {k:14s} {v['rmse']:.5f} / {v['max']:.5f} | {o.get('rmse', nan):.5f} / {o.get('max', nan):.5f} "
+                    f"({frac.get(k, nan):.1%}) | {ob.get('flagged_share', nan):.1%}")
+            if k in truth:
+                line += (f" | {truth[k]['rmse']:.5f} / {truth[k]['max']:.5f} "
+                         f"({ob.get('determined_fraction', nan):.1%})")
+            lines.append(line)
     if r.views:
         ps = [v["psnr"] for v in r.views]
         lines.append(f"re-render PSNR {min(ps):.1f}–{max(ps):.1f} dB, SSIM mean "
