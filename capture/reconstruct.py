@@ -489,6 +489,11 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         report.fit["pooled"] = pooled_auto or {"block": int(options.get("pooled") or 0), "auto": False}
     report.skipped["pixels_not_evaluated"] = {k: v for k, v in obs.drops.items()}
     report.skipped["pixel_fraction_skipped"] = 1 - obs.n_samples / max(n_pix, 1)
+    from renderer.lights import DirectionalLight, PointLight
+
+    report.skipped["time_saved_estimate_s"] = _time_saved(
+        obs, [sum(isinstance(x, (PointLight, DirectionalLight)) for x in v.lights) for v in ds.views], times["solve"],
+        report.selection, report.skipped.get("models_not_tried", []))
 
     # -- metrics --------------------------------------------------------------------------------
     t = time.perf_counter()
@@ -593,6 +598,32 @@ def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, repo
         raise
 
 
+def _time_saved(obs: Observations, lights_per_view: list[int], solve_s: float, selection: list[dict],
+                not_tried: list[str]) -> dict:
+    """What the skips saved, estimated from this run's own costs (seconds; the report's ``skipped``).
+
+    * ``pairs``: the (sample, light) pairs a shader of every pixel on the object with every light of its view would
+      have evaluated and this run did not — pixels dropped as backfacing, shadowed, unlit, clipped or non-finite, and
+      the lights that do not reach a kept sample — priced at the solve's cost per evaluated pair (the solve's work is
+      per pair and per sample, docs/benchmarks.md). Background pixels are not counted: no surface, nothing to shade.
+      ``lights_per_view``: the point and directional lights of each view (environment lights have no pairs).
+    * ``models_not_tried``: ``model="auto"`` stopped before the richer candidates; each would have cost at least the
+      last tried model's fit (a richer model has more parameters to fit), so this is a lower bound.
+    """
+    per_view = torch.bincount(obs.view, minlength=len(lights_per_view)).tolist()
+    full = sum(n * k for n, k in zip(per_view, lights_per_view, strict=True))
+    on_object_dropped = sum(v for k, v in obs.drops.items() if k != "background")
+    mean_lights = sum(lights_per_view) / max(len(lights_per_view), 1)
+    skipped_pairs = int(full - obs.n_pairs + round(on_object_dropped * mean_lights))
+    per_pair = solve_s / max(obs.n_pairs, 1)
+    out = {"pairs_not_evaluated": skipped_pairs, "pairs_evaluated": int(obs.n_pairs),
+           "pairs": skipped_pairs * per_pair}
+    if not_tried and selection:
+        out["models_not_tried"] = len(not_tried) * float(selection[-1]["seconds"])
+    out["total"] = out["pairs"] + out.get("models_not_tried", 0.0)
+    return out
+
+
 def _summary(r: Report) -> str:
     lines = [f"model {r.model}  solver {r.solver}  total {r.times.get('total', 0):.1f} s  "
              + "  ".join(f"{k} {v:.1f}s" for k, v in r.times.items() if k != "total"),
@@ -600,6 +631,18 @@ def _summary(r: Report) -> str:
              + ", ".join(f"{k} {v}" for k, v in r.drops.items() if v),
              f"texels observed {r.coverage.get('observed')} / {r.coverage.get('texels')}; unobservable "
              + ", ".join(f"{k} {v}" for k, v in r.coverage.get("unobservable", {}).items())]
+    saved = r.skipped.get("time_saved_estimate_s", {})
+    skips = [f"parameters not allocated: {', '.join(r.skipped['parameters_not_allocated']) or 'none'}"] \
+        if "parameters_not_allocated" in r.skipped else []
+    if saved:
+        skips.append(f"{saved['pairs_not_evaluated']} (sample, light) pairs on the object not evaluated "
+                     f"(≈ {saved['pairs']:.1f} s)")
+    if r.skipped.get("models_not_tried"):
+        skips.append(f"models not tried: {', '.join(r.skipped['models_not_tried'])} (≥ "
+                     f"{saved.get('models_not_tried', 0.0):.1f} s)")
+    if skips:
+        lines.append("skipped: " + "; ".join(skips) + (f" — time saved ≈ {saved['total']:.1f} s (estimated from "
+                                                        f"this run's costs)" if saved else ""))
     per_object = r.skipped.get("parameters_per_object", {})
     if per_object:
         fitted = r.fit.get("scalars", {})

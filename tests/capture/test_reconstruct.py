@@ -51,10 +51,43 @@ def test_no_error_at_the_truths_determined_texels_when_another_model_rendered_th
     assert "true maps" not in (tmp_path / "o" / "summary.txt").read_text()
 
 
+def test_time_saved_by_the_skips_by_hand():
+    # three views with 2, 1 and 0 point lights keep 3, 2 and 0 samples; 5 pairs were evaluated (one light of view 0
+    # missed one sample). A shader of every pixel on the object would have evaluated 3·2 + 2·1 = 8 pairs for the kept
+    # samples plus 6 dropped pixels × 1 light (the mean) — 9 not evaluated, at 1.8 s / 5 pairs each; the background
+    # is not counted. Two models not tried, each at least the last tried model's 2 s.
+    from types import SimpleNamespace
+
+    from capture.reconstruct import _time_saved
+
+    obs = SimpleNamespace(view=torch.tensor([0, 0, 0, 1, 1]), n_pairs=5,
+                          drops={"background": 100, "backfacing": 4, "shadowed": 2, "clipped": 0})
+    saved = _time_saved(obs, [2, 1, 0], 1.8, [{"seconds": 0.5}, {"seconds": 2.0}], ["a", "b"])
+    assert saved["pairs_not_evaluated"] == 9 and saved["pairs_evaluated"] == 5
+    assert saved["pairs"] == pytest.approx(9 * 1.8 / 5)
+    assert saved["models_not_tried"] == pytest.approx(4.0)
+    assert saved["total"] == pytest.approx(9 * 1.8 / 5 + 4.0)
+    assert "models_not_tried" not in _time_saved(obs, [2, 1, 0], 1.8, [], [])
+
+
 def test_auto_stops_at_lambert_for_a_lambert_scene(lambert_ds, tmp_path):
     rep = reconstruct(lambert_ds, model="auto", out_dir=tmp_path / "auto", progress=False, iterations=10, grid=8)
     assert rep.model == "lambert"
     assert rep.selection[0]["model"] == "lambert" and len(rep.selection) == 2
+    # the time the skips saved, by hand from the report's own counts: every view has the same L point lights, so a
+    # shader of every pixel on the object would evaluate (valid + dropped-on-object pixels) × L pairs
+    lights = {len(v["lights"]) for v in json.loads((lambert_ds / "scene.json").read_text())["images"]}
+    assert len(lights) == 1
+    (n_lights,) = lights
+    on_object = rep.samples["valid"] + sum(v for k, v in rep.drops.items() if k != "background")
+    saved = rep.skipped["time_saved_estimate_s"]
+    assert saved["pairs_not_evaluated"] == on_object * n_lights - rep.samples["pairs"] > 0
+    assert saved["pairs"] == pytest.approx(saved["pairs_not_evaluated"] * rep.times["solve"] / rep.samples["pairs"])
+    not_tried = rep.skipped["models_not_tried"]
+    assert not_tried and saved["models_not_tried"] == pytest.approx(len(not_tried) * rep.selection[-1]["seconds"])
+    assert saved["total"] == pytest.approx(saved["pairs"] + saved["models_not_tried"])
+    summary = (tmp_path / "auto" / "summary.txt").read_text()
+    assert "models not tried: " + ", ".join(not_tried) in summary and "time saved ≈" in summary
 
 
 def test_bad_input(lambert_ds, tmp_path):
