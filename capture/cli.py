@@ -81,7 +81,8 @@ def _cmd_reconstruct(args) -> int:
 
     extra = {"pooled": args.pooled} if args.pooled is not None else {}
     report = reconstruct(args.dataset, model=args.model, out_dir=args.out, force=args.force,
-                         solver=args.solver, loss=args.loss, texture_size=args.tex, **known_options(args), **extra)
+                         solver=args.solver, loss=args.loss, texture_size=args.tex, holdout=args.holdout,
+                         **known_options(args), **extra)
     summary = Path(args.out) / "summary.txt"
     print(summary.read_text() if summary.exists() else report)
     return 0
@@ -95,6 +96,7 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tex", type=int, default=None, help="texture size of the recovered maps (default: the dataset's)")
     add_pooled_arg(p)
     add_known_args(p)
+    add_holdout_arg(p)
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
 
 
@@ -105,6 +107,21 @@ def add_pooled_arg(p: argparse.ArgumentParser) -> None:
                         "default: 4 when the lights stay fixed relative to the object (studio lamps, a dome: a "
                         "rough material may show no highlight peak), off when they move with the camera "
                         "(flash, turntable); 0 = off")
+
+
+def parse_views(text: str) -> list[int]:
+    """``"3,7"`` → ``[3, 7]`` (argparse type of ``--holdout``)."""
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected view indices separated by commas, e.g. 3,7; got {text!r}") from None
+
+
+def add_holdout_arg(p: argparse.ArgumentParser) -> None:
+    """``--holdout 3,7``: views kept out of the fit to validate it (``reconstruct(holdout=...)``)."""
+    p.add_argument("--holdout", type=parse_views, default=None, metavar="I,J",
+                   help="view indices kept out of the fit and re-rendered with the recovered maps to validate them "
+                        "(PSNR / SSIM in the summary); default: fit every view")
 
 
 def add_known_args(p: argparse.ArgumentParser) -> None:

@@ -37,7 +37,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -242,7 +242,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                 loss: str = "l2", texture_size: int | None = None, dtype: torch.dtype = torch.float32,
                 progress: bool = True, auto_gain: float = 0.05, max_grid_views: int = 8, sampling: str | None = None,
                 threads: int | None = None, known: Mapping[str, object] | None = None,
-                scalars: tuple[str, ...] | list[str] = SCALARS, **options) -> Report:
+                scalars: tuple[str, ...] | list[str] = SCALARS, holdout: Sequence[int] | None = None,
+                **options) -> Report:
     """Recover the material maps of a dataset and write them to ``out_dir`` (see module docstring).
 
     Args:
@@ -278,6 +279,11 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             report, with a warning where it is observable nowhere), held fixed in a second fit of the
             rest. Known values take precedence. ``()`` = everything per texel. Not applied to the trial
             fits of ``model="auto"``, only to the final one.
+        holdout: view indices kept out of the fit and used only to validate it: each is re-rendered with the
+            recovered (filled) maps — what a user gets — and compared with its photo (PSNR / SSIM in
+            ``report.views``, flagged ``heldout``, and the summary). The only check of the maps on real photos,
+            which have no ground truth. None = every view is fitted. ``model="auto"`` splits the fitted views
+            only.
         **options: passed to the solver (iterations, grid, schedule, smoothness, delta, lr, ...). The fast
             solver's ``pooled`` (pooled material proposals, :func:`capture.solvers.solve_fast`) defaults to
             :data:`POOLED_STATIC` when :func:`static_lights` says the lights stay fixed relative to the object
@@ -300,7 +306,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             return reconstruct(dataset_path, model, out_dir, force=force, solver=solver, loss=loss,
                                texture_size=texture_size, dtype=dtype, progress=progress, auto_gain=auto_gain,
                                max_grid_views=max_grid_views, sampling=sampling, threads=None, known=known,
-                               scalars=scalars, **options)
+                               scalars=scalars, holdout=holdout, **options)
         finally:
             torch.set_num_threads(old)
     from capture.dataset import load_dataset
@@ -338,6 +344,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     for c in candidates:
         _model(c, known)  # unknown names and bad known values fail before any work
     ds = load_dataset(dataset_path)
+    held_views = _check_holdout(holdout, len(ds.views))
+    fit_views = [i for i in range(len(ds.views)) if i not in held_views]
     times["load"] = time.perf_counter() - t
 
     # -- geometry once --------------------------------------------------------------------------
@@ -376,6 +384,14 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     report.samples = {"pixels": n_pix, "valid": obs.n_samples, "pairs": obs.n_pairs,
                       "lights": len(all_lights), "views": len(ds.views)}
     report.drops = dict(obs.drops)
+    all_obs, held_obs = obs, None
+    if held_views:
+        obs, held_obs = all_obs.select_views(fit_views), all_obs.select_views(held_views)
+        report.samples.update(heldout_views=held_views, heldout_samples=held_obs.n_samples,
+                              fitted_samples=obs.n_samples)
+        if obs.n_samples == 0:
+            raise ReconstructionError(f"the views left to fit ({fit_views}) have no valid sample; hold out fewer "
+                                      f"views (holdout={held_views})")
 
     bar = None
     if progress:
@@ -391,9 +407,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     # -- model selection --------------------------------------------------------------------------
     t = time.perf_counter()
     if len(candidates) > 1:
-        n = len(ds.views)
-        held = list(range(3, n, 4)) if n >= 4 else []
-        train_obs = obs.select_views([i for i in range(n) if i not in held]) if held else obs
+        held = fit_views[3::4] if len(fit_views) >= 4 else []
+        train_obs = obs.select_views([i for i in fit_views if i not in held]) if held else obs
         test_obs = obs.select_views(held) if held else obs
         best_err, chosen = math.inf, candidates[0]
         for name in candidates:
@@ -492,8 +507,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     from renderer.lights import DirectionalLight, PointLight
 
     report.skipped["time_saved_estimate_s"] = _time_saved(
-        obs, [sum(isinstance(x, (PointLight, DirectionalLight)) for x in v.lights) for v in ds.views], times["solve"],
-        report.selection, report.skipped.get("models_not_tried", []))
+        all_obs, [sum(isinstance(x, (PointLight, DirectionalLight)) for x in v.lights) for v in ds.views],
+        times["solve"], obs.n_pairs, report.selection, report.skipped.get("models_not_tried", []))
 
     # -- metrics --------------------------------------------------------------------------------
     t = time.perf_counter()
@@ -520,21 +535,28 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         if known_maps:  # how far the given values are from the truth, over the observed texels
             report.errors["known"] = map_errors(known_maps, ds.gt.maps, observed, None, None)
         report.errors["gt_model"] = ds.gt.model
+    # the fitted views with the fitted values, the held-out ones with the filled maps a user gets (texels only they
+    # see are unobserved in the fit)
     renders = []
     with torch.no_grad():
         pred = obs.predict(mdl, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}, sampling))
+        held_pred = held_obs.predict(mdl, held_obs.per_sample({k: v.to(obs.dtype) for k, v in fit.maps.items()},
+                                                              sampling)) if held_obs is not None else None
     for i, v in enumerate(ds.views):
+        src, values = (held_obs, held_pred) if i in held_views else (obs, pred)
         H, W = v.camera.height, v.camera.width
-        img = torch.zeros(H * W, 3, dtype=pred.dtype)
-        sel = obs.view == i
-        img[obs.pixel[sel]] = pred[sel]
+        img = torch.zeros(H * W, 3, dtype=values.dtype)
+        sel = src.view == i
+        img[src.pixel[sel]] = values[sel]
         img = img.reshape(H, W, 3)
         mask = torch.zeros(H * W, dtype=torch.bool)
-        mask[obs.pixel[sel]] = True
+        mask[src.pixel[sel]] = True
         mask = mask.reshape(H, W)
         m = image_metrics(img, photos[i].radiance, mask)
-        report.views.append({"view": i, **m})
-        renders.append((img, mask))
+        report.views.append({"view": i, **({"heldout": True} if i in held_views else {}), **m})
+        renders.append((i, img, mask))
+    # the grid shows the held-out views first
+    renders.sort(key=lambda r: r[0] not in held_views)
     times["metrics"] = time.perf_counter() - t
 
     # -- write ----------------------------------------------------------------------------------
@@ -567,7 +589,7 @@ def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, repo
         # re-render grid: photo | render | |error| ×4, for up to max_grid_views views
         rows = []
         peak = max(float(torch.nan_to_num(p.radiance, nan=0.0, posinf=0.0).max()) for p in photos) or 1.0
-        for i, (img, mask) in enumerate(renders[:max_grid_views]):
+        for i, img, mask in renders[:max_grid_views]:
             ph = torch.nan_to_num(photos[i].radiance.float(), nan=0.0, posinf=0.0)
             err = ((img.float() - ph).abs() * 4) * mask[..., None]
             rows.append([ph / peak, img.float() / peak, err / peak])
@@ -598,16 +620,33 @@ def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, repo
         raise
 
 
-def _time_saved(obs: Observations, lights_per_view: list[int], solve_s: float, selection: list[dict],
-                not_tried: list[str]) -> dict:
+def _check_holdout(holdout, n_views: int) -> list[int]:
+    """The sorted held-out view indices of ``holdout`` (None → []), or a ReconstructionError naming the fix."""
+    if holdout is None:
+        return []
+    if isinstance(holdout, (str, bytes, int)) or not all(isinstance(i, int) and not isinstance(i, bool)
+                                                         for i in holdout):
+        raise ReconstructionError(f"holdout must be a list of view indices (integers), e.g. [3, 7], got {holdout!r}")
+    held = sorted(set(holdout))
+    if len(held) != len(list(holdout)) or any(i < 0 or i >= n_views for i in held):
+        raise ReconstructionError(f"holdout must list distinct view indices in [0, {n_views}) (the dataset has "
+                                  f"{n_views} views), got {list(holdout)}")
+    if len(held) >= n_views:
+        raise ReconstructionError(f"holdout {held} leaves no view to fit; hold out fewer than {n_views} views")
+    return held
+
+
+def _time_saved(obs: Observations, lights_per_view: list[int], solve_s: float, fitted_pairs: int,
+                selection: list[dict], not_tried: list[str]) -> dict:
     """What the skips saved, in seconds estimated from this run's own costs (the report's ``skipped``).
 
     * ``pairs_upper_s``: the (sample, light) pairs (``pairs_not_evaluated``) that a shader of every pixel on the
       object with every light of its view would have evaluated and this run did not — pixels dropped as backfacing,
-      shadowed, unlit, clipped or non-finite, and the lights that do not reach a kept sample — priced at the solve's
-      *mean* cost per evaluated pair. An upper bound: part of the solve is per texel, not per pair (default scene,
-      2 threads: solve 9.0 / 11.8 / 17.9 s for 4 / 8 / 16 views, a marginal 28–31 µs per pair against a mean of
-      45 µs at 16 views). Background pixels are not counted: no surface, nothing to shade.
+      shadowed, unlit, clipped or non-finite, and the lights that do not reach a kept sample (all views, ``obs``) —
+      priced at the solve's *mean* cost per pair it evaluated (``fitted_pairs``). An upper bound: part of the solve
+      is per texel, not per pair (default scene, 2 threads: solve 9.0 / 11.8 / 17.9 s for 4 / 8 / 16 views, a
+      marginal 28–31 µs per pair against a mean of 45 µs at 16 views). Background pixels are not counted: no
+      surface, nothing to shade.
     * ``models_not_tried_lower_s``: ``model="auto"`` stopped before the richer candidates; each would have cost at
       least the last tried model's fit (a richer model has more parameters to fit) — a lower bound.
 
@@ -619,7 +658,7 @@ def _time_saved(obs: Observations, lights_per_view: list[int], solve_s: float, s
     mean_lights = sum(lights_per_view) / max(len(lights_per_view), 1)
     skipped_pairs = int(full - obs.n_pairs + round(on_object_dropped * mean_lights))
     out = {"pairs_not_evaluated": skipped_pairs, "pairs_evaluated": int(obs.n_pairs),
-           "pairs_upper_s": skipped_pairs * solve_s / max(obs.n_pairs, 1)}
+           "pairs_upper_s": skipped_pairs * solve_s / max(fitted_pairs, 1)}
     if not_tried and selection:
         out["models_not_tried_lower_s"] = len(not_tried) * float(selection[-1]["seconds"])
     return out
@@ -674,9 +713,12 @@ def _summary(r: Report) -> str:
                 line += (f" | {truth[k]['rmse']:.5f} / {truth[k]['max']:.5f} "
                          f"({ob.get('determined_fraction', nan):.1%})")
             lines.append(line)
-    if r.views:
-        ps = [v["psnr"] for v in r.views]
-        lines.append(f"re-render PSNR {min(ps):.1f}–{max(ps):.1f} dB, SSIM mean "
-                     f"{sum(v['ssim'] for v in r.views) / len(r.views):.4f}")
+    for label, vs in (("re-render", [v for v in r.views if not v.get("heldout")]),
+                      ("held-out views " + ", ".join(str(v["view"]) for v in r.views if v.get("heldout"))
+                       + " (not fitted; filled maps)", [v for v in r.views if v.get("heldout")])):
+        if vs:
+            ps = [v["psnr"] for v in vs]
+            lines.append(f"{label}: PSNR {min(ps):.1f}–{max(ps):.1f} dB, SSIM mean "
+                         f"{sum(v['ssim'] for v in vs) / len(vs):.4f}")
     lines.extend(f"WARNING: {w}" for w in r.warnings)
     return "\n".join(lines) + "\n"

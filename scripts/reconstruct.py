@@ -12,7 +12,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from capture.cli import add_known_args, add_pooled_arg, known_options  # noqa: E402  (shared with `shadecap reconstruct`)
+# shared with `shadecap reconstruct`
+from capture.cli import add_holdout_arg, add_known_args, add_pooled_arg, known_options  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -33,6 +34,7 @@ def main(argv=None) -> int:
     ap.add_argument("--float64", action="store_true", help="evaluate the model in float64")
     add_pooled_arg(ap)
     add_known_args(ap)
+    add_holdout_arg(ap)
     ap.add_argument("--force", action="store_true")
     a = ap.parse_args(argv)
     import torch
@@ -43,7 +45,7 @@ def main(argv=None) -> int:
                               ("smoothness", a.smoothness), ("pooled", a.pooled)) if v is not None}
     reconstruct(a.dataset, model=a.model, out_dir=a.out, force=a.force, solver=a.solver, loss=a.loss,
                 texture_size=a.tex, dtype=torch.float64 if a.float64 else torch.float32, sampling=a.sampling,
-                threads=a.threads, **known_options(a), **opts)
+                threads=a.threads, holdout=a.holdout, **known_options(a), **opts)
     print((Path(a.out) / "summary.txt").read_text())
     return 0
 
