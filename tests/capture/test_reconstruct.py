@@ -470,3 +470,22 @@ def test_held_out_views_validate_the_fit_without_being_fitted(tmp_path):
         with pytest.raises(ReconstructionError, match=match):
             reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / "bad", progress=False, holdout=bad)
     assert not (tmp_path / "bad").exists()
+
+
+def test_per_texel_lm_stops_early_once_its_cost_settles(tmp_path):
+    # With bilinear sampling the per-texel LM only starts the joint refinement: it stops after BILINEAR_LM_MIN
+    # iterations once the cost drops by < BILINEAR_LM_TOL twice in a row (GGX + Lambert from its closed-form grid:
+    # drops of ~1e-4 per iteration), and runs its 10 while the cost still falls fast (the layered model, whose
+    # per-texel fit the fallback to the texels' own fits measures against; a fixed 5 broke that, session 11).
+    from capture.solvers import BILINEAR_LM_MIN
+
+    make_synthetic(small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6), tmp_path / "ggx")
+    rep = reconstruct(tmp_path / "ggx", model="ggx-lambert", out_dir=tmp_path / "o1", progress=False)
+    assert rep.fit["lm_iterations"] == BILINEAR_LM_MIN < 10
+    rep = reconstruct(tmp_path / "ggx", model="ggx-lambert", out_dir=tmp_path / "o2", progress=False, iterations=10)
+    assert rep.fit["lm_iterations"] == 10                     # an explicit count is run as given
+    make_synthetic(small_scene("gotanda2012-layered", uniform={"coat_roughness": 0.1}, image_size=64, texture_size=32,
+                               n_views=8), tmp_path / "lay")
+    rep = reconstruct(tmp_path / "lay", model="gotanda2012-layered", out_dir=tmp_path / "o3", progress=False,
+                      known={"coat_ior": 1.5, "coat_roughness": 0.1})
+    assert rep.fit["lm_iterations"] == 10
