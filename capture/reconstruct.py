@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import math
+import operator
 import os
 import shutil
 import tempfile
@@ -624,11 +625,18 @@ def _check_holdout(holdout, n_views: int) -> list[int]:
     """The sorted held-out view indices of ``holdout`` (None → []), or a ReconstructionError naming the fix."""
     if holdout is None:
         return []
-    if isinstance(holdout, (str, bytes, int)) or not all(isinstance(i, int) and not isinstance(i, bool)
-                                                         for i in holdout):
-        raise ReconstructionError(f"holdout must be a list of view indices (integers), e.g. [3, 7], got {holdout!r}")
+    try:
+        if isinstance(holdout, (str, bytes)):
+            raise TypeError
+        holdout = list(holdout)
+        if any(isinstance(i, bool) for i in holdout):
+            raise TypeError
+        holdout = [operator.index(i) for i in holdout]          # ints, numpy integers; not floats or bools
+    except TypeError:
+        raise ReconstructionError(f"holdout must be a list of view indices (integers), e.g. [3, 7], "
+                                  f"got {holdout!r}") from None
     held = sorted(set(holdout))
-    if len(held) != len(list(holdout)) or any(i < 0 or i >= n_views for i in held):
+    if len(held) != len(holdout) or any(i < 0 or i >= n_views for i in held):
         raise ReconstructionError(f"holdout must list distinct view indices in [0, {n_views}) (the dataset has "
                                   f"{n_views} views), got {list(holdout)}")
     if len(held) >= n_views:

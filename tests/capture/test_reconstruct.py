@@ -466,7 +466,7 @@ def test_held_out_views_validate_the_fit_without_being_fitted(tmp_path):
     assert s["valid"] == every.samples["valid"] and s["heldout_samples"] > 0
     assert "held-out views 2, 5 (not fitted; filled maps): PSNR" in (tmp_path / "held" / "summary.txt").read_text()
     for bad, match in (([8], r"in \[0, 8\)"), (list(range(8)), "leaves no view"), ([1, 1], "distinct"),
-                       (3, "list of view indices"), ([True], "list of view indices")):
+                       (3, "list of view indices"), ([True], "list of view indices"), ([2.0], "list of view indices")):
         with pytest.raises(ReconstructionError, match=match):
             reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / "bad", progress=False, holdout=bad)
     assert not (tmp_path / "bad").exists()
