@@ -276,15 +276,27 @@ def test_unresolved_roughness_by_hand():
     assert unresolved_roughness(obs, r5.reshape(1, 1, 1), mask)[0] == 0.0
 
 
-def test_fully_rough_scene_still_warns_with_sharing_on(tmp_path):
-    # roughness 1 everywhere: no texel determines f0 and roughness, so sharing has no anchors and must fall
-    # back to the fill (it once ran the joint prior on raw per-texel values: roughness RMSE 0.43, no warning)
+def test_fully_rough_scene_without_anchors_falls_back_and_warns_and_loosened_anchors_find_it(tmp_path, monkeypatch):
+    # roughness 1 everywhere: no texel determines f0 and roughness at the observability thresholds. With the anchors
+    # held there (ANCHOR_LOOSENING = (1,)) the sharing has none and must fall back to the fill and warn (it once ran
+    # the joint prior on raw per-texel values: roughness RMSE 0.43, no warning); measured albedo / f0 / roughness
+    # 0.104 / 0.211 / 0.063 on all observed texels.
+    import capture.solvers
+
     base = small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6)
     make_synthetic(replace(base, uniform={"roughness": 1.0}), tmp_path / "ds")
-    rep = reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / "o", progress=False)
+    with monkeypatch.context() as m:
+        m.setattr(capture.solvers, "ANCHOR_LOOSENING", (1.0,))
+        rep = reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / "o", progress=False)
     assert rep.fit["materials"] == [] and rep.fit["share_anchors"] == 0
     assert any("'roughness' is unobservable in every observed texel" in w for w in rep.warnings)
-    assert rep.errors["maps"]["roughness"]["rmse"] < 0.1          # measured 0.078
+    assert rep.errors["maps"]["roughness"]["rmse"] < 0.1          # measured 0.063
+    # by default the thresholds loosen (× 3 here: 60 anchors) and the sharing recovers the materials; measured
+    # 0.035 / 0.056 / 0.0048 — the roughness is then measured, not filled, and the warning is rightly gone
+    rep = reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / "o2", progress=False)
+    assert rep.fit["share_anchor_factor"] == 3.0 and rep.fit["share_anchors"] > 0 and rep.fit["materials"]
+    errs = {k: v["rmse"] for k, v in rep.errors["maps"].items()}
+    assert errs["roughness"] < 0.01 and errs["albedo"] < 0.05 and errs["f0"] < 0.08, errs
 
 
 def test_proposal_prior_keeps_more_joint_steps_from_drifting(tmp_path):
@@ -354,7 +366,7 @@ def test_albedo_prior_fills_texels_seen_only_through_their_neighbours(tmp_path):
     assert err["noisy", True] < 0.042, err
 
 
-def test_sharing_that_misses_a_material_falls_back_to_the_texels_own_fits(tmp_path):
+def test_sharing_that_misses_a_material_falls_back_to_the_texels_own_fits(tmp_path, monkeypatch):
     # Layered model, bilinear scene under a flash rig: the metals' base lobe under the coat is seen in too few
     # texels to make an anchor, so no metal material exists and the sharing gave every metal texel a dielectric:
     # data cost after the joint refinement 0.0368 against 0.0028 for the per-texel fit it started from. The solver
@@ -362,10 +374,17 @@ def test_sharing_that_misses_a_material_falls_back_to_the_texels_own_fits(tmp_pa
     # (data cost 0.0028). Measured worst / mean view PSNR: 21.5 / 30.7 dB (20.3 / 28.3 with session 6's joint steps);
     # 18.3 / 23.8 without the fallback, and
     # 0.6 / 15.4 before the scalars came from the per-texel fit too — under the sharing the coat took the
-    # materials' values, reported as *measured* coat roughness 0.227 (truth 0.1) and coat η 1.365 (truth 1.5)
+    # materials' values, reported as *measured* coat roughness 0.227 (truth 0.1) and coat η 1.365 (truth 1.5).
+    # Since session 12 the anchors loosen when fewer than 1 % of the texels qualify (2 here; × 10 gives 9, among them
+    # metal texels), and then the sharing no longer misses the metals (checked at the end); the fallback is tested
+    # with the anchors held at the thresholds.
+    import capture.solvers
+
     make_synthetic(small_scene("gotanda2012-layered", uniform={"coat_roughness": 0.1}, image_size=64, texture_size=32,
                                n_views=8), tmp_path / "ds")
-    rep = reconstruct(tmp_path / "ds", model="gotanda2012-layered", out_dir=tmp_path / "o", progress=False)
+    with monkeypatch.context() as m:
+        m.setattr(capture.solvers, "ANCHOR_LOOSENING", (1.0,))
+        rep = reconstruct(tmp_path / "ds", model="gotanda2012-layered", out_dir=tmp_path / "o", progress=False)
     fb = rep.fit["sharing_fallback"]
     assert fb["kept"] == "fallback" and fb["own_fit_texels"] > 0, fb
     assert fb["shared_data_cost"] > fb["per_texel_data_cost"]
@@ -377,6 +396,13 @@ def test_sharing_that_misses_a_material_falls_back_to_the_texels_own_fits(tmp_pa
     for name, truth in (("coat_ior", 1.5), ("coat_roughness", 0.1)):
         note = rep.fit["scalars"][name]
         assert not note["measured"] or abs(note["value"][0] - truth) < 0.02, (name, note)
+    # by default: no fallback needed; measured worst / mean view 24.4 / 43.1 dB, albedo on the texels the photos
+    # determine at the truth 0.012 (0.165 with the fallback above)
+    rep = reconstruct(tmp_path / "ds", model="gotanda2012-layered", out_dir=tmp_path / "o2", progress=False)
+    assert rep.fit["share_anchor_factor"] == 10.0 and "sharing_fallback" not in rep.fit
+    psnr = [v["psnr"] for v in rep.views]
+    assert min(psnr) > 23 and sum(psnr) / len(psnr) > 40, psnr
+    assert rep.errors["maps_determined_at_truth"]["albedo"]["rmse"] < 0.03
 
 
 def test_heldout_error_of_auto_uses_the_filled_maps():
