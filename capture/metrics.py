@@ -144,7 +144,7 @@ def determined_at_truth(model, obs, gt: Mapping[str, Tensor], *, sampling: str =
         gt: name → true map ``[H, W, C]`` in canonical units, ``(H, W) = obs.map_size``.
         sampling: "nearest" or "bilinear", as the fit's; noise, observable_std: as the fit's (None = defaults).
     """
-    from .solvers import ACC, NOISE, Layout, _groups, posterior_std, std_threshold
+    from .solvers import ACC, NOISE, Layout, _groups, determined, posterior_std
 
     H, W = obs.map_size
     layout = Layout.of(model)
@@ -162,8 +162,7 @@ def determined_at_truth(model, obs, gt: Mapping[str, Tensor], *, sampling: str =
     canon = torch.cat([gt[s.name].reshape(T, s.channels).to(obs.device, ACC) for s in layout.specs], -1)
     std, observed, _ = posterior_std(model, layout, obs, canon, _groups(layout), noise=NOISE if noise is None
                                      else noise, sampling=sampling)
-    return {s.name: (observed & (std[:, o:o + s.channels].amax(-1) < std_threshold(s, observable_std))).reshape(H, W)
-            for s, o in zip(layout.specs, layout.offsets, strict=True)}
+    return {k: m.reshape(H, W) for k, m in determined(layout, std, observed, observable_std).items()}
 
 
 def image_metrics(rendered: Tensor, photo: Tensor, mask: Tensor | None = None) -> dict:

@@ -57,7 +57,7 @@ from materials.params import ParamSpec
 from .observations import Observations
 
 __all__ = ["Layout", "FitResult", "SolverError", "LOSSES", "OBSERVABLE_STD", "NOISE", "solve_fast", "solve_adam",
-           "refine_joint", "posterior_std", "std_threshold", "pull_push", "robust_rho"]
+           "refine_joint", "posterior_std", "std_threshold", "determined", "pull_push", "robust_rho"]
 
 LOSSES = ("l2", "huber", "l1")
 _EPS_BOUND = 1e-6
@@ -754,6 +754,14 @@ ANCHOR_MIN_FRACTION = 0.01
 ANCHOR_LOOSENING = (1.0, 3.0, 10.0)
 
 
+def determined(layout: Layout, std: Tensor, observed: Tensor, observable_std=None,
+               factor: float = 1.0) -> dict[str, Tensor]:
+    """Per parameter ``[T]`` bool: the ``observed`` texels whose marginal posterior std (``std [T, P]``,
+    :func:`posterior_std`) is below ``factor`` × the parameter's observability threshold in every channel."""
+    return {s_.name: observed & (std[:, o:o + s_.channels].amax(-1) < factor * std_threshold(s_, observable_std))
+            for s_, o in zip(layout.specs, layout.offsets, strict=True)}
+
+
 def _anchors(layout: Layout, std: Tensor, observed: Tensor, names: Sequence[str],
              observable_std) -> tuple[Tensor, float]:
     """``([T] bool anchors, factor)``: the observed texels whose posterior std (``std [T, P]``) is below ``factor`` ×
@@ -763,12 +771,9 @@ def _anchors(layout: Layout, std: Tensor, observed: Tensor, names: Sequence[str]
     if not names:
         return observed, 1.0
     need = ANCHOR_MIN_FRACTION * int(observed.sum())
-    cols = {s_.name: (s_, o) for s_, o in zip(layout.specs, layout.offsets, strict=True)}
     for factor in ANCHOR_LOOSENING:
-        anchors = observed.clone()
-        for n in names:
-            s_, o = cols[n]
-            anchors &= std[:, o:o + s_.channels].amax(-1) < factor * std_threshold(s_, observable_std)
+        good = determined(layout, std, observed, observable_std, factor)
+        anchors = torch.stack([good[n] for n in names]).all(0)
         if int(anchors.sum()) >= need:
             break
     return anchors, factor
@@ -1056,8 +1061,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     if share or (joint and fill_before_joint):
         canon = torch.cat([layout.unpack(theta)[s.name] for s in layout.specs], -1)
         std, observed_n, _ = posterior_std(model, layout, obs, canon, groups, loss=loss, delta=delta, noise=noise)
-        good = {s_.name: observed_n & (std[:, o:o + s_.channels].amax(-1) < std_threshold(s_, observable_std))
-                for s_, o in zip(layout.specs, layout.offsets, strict=True)}
+        good = determined(layout, std, observed_n, observable_std)
     if share:
         from .sharing import share_materials
         shared_names = _shared_default(layout)
