@@ -697,6 +697,10 @@ def _summary(r: Report) -> str:
             f"{k} {', '.join(f'{x:.4g}' for x in v)} "
             + (f"(fitted: median of {fitted[k]['from_texels']} texels)" if k in fitted else "(given)")
             for k, v in per_object.items()))
+    if r.fit.get("share_anchor_factor", 1.0) > 1.0:
+        lines.append(f"reflectance sharing seeded from {r.fit['share_anchors']} roughly determined texels "
+                     f"(thresholds × {r.fit['share_anchor_factor']:g}: fewer than 1 % of the texels determine every "
+                     f"material parameter)")
     pooled = r.fit.get("pooled", {})
     if pooled.get("block"):
         why = (f"the lights stay fixed: {pooled['distinct_lights']} positions for {pooled['view_light_pairs']} "

@@ -295,6 +295,8 @@ def test_fully_rough_scene_without_anchors_falls_back_and_warns_and_loosened_anc
     # 0.035 / 0.056 / 0.0048 — the roughness is then measured, not filled, and the warning is rightly gone
     rep = reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / "o2", progress=False)
     assert rep.fit["share_anchor_factor"] == 3.0 and rep.fit["share_anchors"] > 0 and rep.fit["materials"]
+    assert "roughly determined texels (thresholds × 3" in (tmp_path / "o2" / "summary.txt").read_text()
+    assert "roughly determined" not in (tmp_path / "o" / "summary.txt").read_text()
     errs = {k: v["rmse"] for k, v in rep.errors["maps"].items()}
     assert errs["roughness"] < 0.01 and errs["albedo"] < 0.05 and errs["f0"] < 0.08, errs
 
