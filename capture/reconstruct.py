@@ -7,9 +7,11 @@
    (shadow rays) — geometry is known, so this happens once whatever the model and solver.
 3. ``observe``: :func:`capture.observations.observe_views` — valid samples only, drop reasons counted.
 4. ``select`` (``model="auto"`` only): fit the candidates cheapest first — ``lambert`` →
-   ``ggx-lambert`` → ``gotanda2012-layered`` (when registered) — on all views but a held-out
-   quarter, and stop as soon as a richer model lowers the held-out mean absolute error by less than
-   ``auto_gain`` (5 %). The chosen model is then refit on all views.
+   ``ggx-lambert`` → ``gotanda2012-layered`` (when registered) — each as the final fit would (coat
+   scalars included), on all views but a held-out quarter, and stop as soon as a richer model lowers
+   the held-out mean absolute error by less than ``auto_gain`` (5 %). Maps larger than
+   :data:`AUTO_TRIAL_TEXTURE`² are judged on a coarser copy of the problem (:func:`_trial_observations`).
+   The chosen model is then refit on all views at full size.
 5. ``solve``: :func:`capture.solvers.solve_fast` (default) or :func:`capture.solvers.solve_adam`.
 6. ``write``: maps (EXR linear + PNG), confidence/coverage maps, a grid of re-rendered views
    beside the photos with error images, ``report.json``, ``summary.txt``, ``mesh.obj`` — into a
@@ -52,8 +54,8 @@ from materials.roughness import half_max_angle
 from .observations import Observations, observe_views
 from .solvers import LOSSES, FitResult, SolverError, solve_adam, solve_fast
 
-__all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "SCALARS", "UNRESOLVED_WARN",
-           "unresolved_roughness"]
+__all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "AUTO_TRIAL_TEXTURE", "SCALARS",
+           "UNRESOLVED_WARN", "unresolved_roughness"]
 
 #: Candidate models of ``model="auto"``, cheapest first (names not registered are skipped).
 AUTO_CANDIDATES = ("lambert", "ggx-lambert", "gotanda2012-layered")
@@ -171,6 +173,46 @@ def _fit_scalars(model, fit: FitResult, names) -> tuple[dict[str, list[float]], 
     return values, notes
 
 
+#: ``model="auto"`` fits its candidates on maps of at most this many texels a side (:func:`_trial_observations`).
+AUTO_TRIAL_TEXTURE = 128
+
+
+def _trial_observations(observe, texture_size: int, fit_views: list[int]) -> Observations:
+    """The observations ``model="auto"`` judges its candidates on: the fitted views, re-observed on maps of
+    :data:`AUTO_TRIAL_TEXTURE`² texels when the maps are larger, with the samples thinned by the same area ratio
+    (a fixed-seed draw) so a texel keeps as many samples as at full size. The question a trial answers — which
+    reflectance model explains the photos — does not need the full resolution, and a trial's cost grows with the
+    samples and texels (default scene, 256² maps: the three trial fits 44 s → 16 s, same choice; docs/
+    reconstruction.md, "Session 13"). Maps of at most that size are judged on the full observations: on a 64²
+    layered scene halving them would make ggx-lambert gain < 5 % over lambert, and auto stop before the layered
+    model."""
+    size = min(texture_size, AUTO_TRIAL_TEXTURE)
+    trial = observe(size)
+    if size < texture_size:
+        gen = torch.Generator().manual_seed(0)
+        keep = torch.rand(trial.n_samples, generator=gen) < (size / texture_size) ** 2
+        trial = trial.select(keep.to(trial.device))
+    return trial.select_views(fit_views)
+
+
+def _fit(model, obs: Observations, solver: str, loss: str, options: dict, progress,
+         scalars) -> tuple[FitResult, object, dict]:
+    """Fit ``model`` as :func:`reconstruct` fits it — the final fit and ``auto``'s trial fits alike. With parameters
+    of ``scalars`` to fit (the coat's η and roughness), a per-texel fit first — the fast solver's without the
+    reflectance sharing, which would replace a texel's own coat by a few materials' (bilinear layered scene: coat η
+    1.645 against 1.5006 from the 3 texels that determine it) — then each scalar's median where it is observable
+    (:func:`_fit_scalars`), held fixed in a second fit of the rest. Returns (fit, the model fitted — with the
+    scalars as known values —, notes on the scalars for the report)."""
+    to_fit = [n for n in scalars if n in model.param_names]
+    first = dict(options, joint_iterations=0, share=False) if to_fit and solver == "fast" else options
+    fit = _solve(model, obs, solver, loss, first, progress)
+    if not to_fit:
+        return fit, model, {}
+    values, notes = _fit_scalars(model, fit, to_fit)
+    model = KnownParams(getattr(model, "base", model), {**getattr(model, "known", {}), **values})
+    return _solve(model, obs, solver, loss, options, progress), model, notes
+
+
 def _heldout_error(model, fit: FitResult, obs: Observations, sampling: str = "nearest") -> float:
     """Mean absolute error of the held-out views re-rendered with the fit's *filled* maps — the maps a user
     gets: where the training views left a parameter unobservable the raw per-texel value is arbitrary, and
@@ -278,8 +320,9 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             fit (fast solver: without the sharing and the joint refinement, which replace a texel's own values by
             a material's), then each one's median over the texels where it is observable (``fit.scalars`` in the
             report, with a warning where it is observable nowhere), held fixed in a second fit of the
-            rest. Known values take precedence. ``()`` = everything per texel. Not applied to the trial
-            fits of ``model="auto"``, only to the final one.
+            rest. Known values take precedence. ``()`` = everything per texel. ``model="auto"``'s trial fits
+            fit them the same way (until session 13 they fitted a coat per texel, and auto never chose the layered
+            model on a layered scene).
         holdout: view indices kept out of the fit and used only to validate it: each is re-rendered with the
             recovered (filled) maps — what a user gets — and compared with its photo (PSNR / SSIM in
             ``report.views``, flagged ``heldout``, and the summary). The only check of the maps on real photos,
@@ -376,9 +419,12 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         options["pooled"] = POOLED_STATIC if static else 0
         pooled_auto = {"block": options["pooled"], "auto": True, "static_lights": static, "distinct_lights": n_lights,
                        "view_light_pairs": n_pairs}
-    obs = observe_views(preps, [p.radiance for p in photos], (texture_size, texture_size), exposure=1.0,
-                        clipped=[p.saturated for p in photos], lights=all_lights, dtype=dtype,
-                        bilinear=sampling == "bilinear")
+    def observe(size: int) -> Observations:
+        return observe_views(preps, [p.radiance for p in photos], (size, size), exposure=1.0,
+                             clipped=[p.saturated for p in photos], lights=all_lights, dtype=dtype,
+                             bilinear=sampling == "bilinear")
+
+    obs = observe(texture_size)
     times["observe"] = time.perf_counter() - t
     n_pix = sum(v.camera.width * v.camera.height for v in ds.views)
     report = Report(model="", solver=solver, out_dir=str(out_dir))
@@ -408,17 +454,25 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     # -- model selection --------------------------------------------------------------------------
     t = time.perf_counter()
     if len(candidates) > 1:
+        trial = _trial_observations(observe, texture_size, fit_views)
         held = fit_views[3::4] if len(fit_views) >= 4 else []
-        train_obs = obs.select_views([i for i in fit_views if i not in held]) if held else obs
-        test_obs = obs.select_views(held) if held else obs
+        train_obs = trial.select_views([i for i in fit_views if i not in held]) if held else trial
+        test_obs = trial.select_views(held) if held else trial
+        report.samples["auto_trials"] = {"texture_size": int(trial.map_size[0]), "samples": trial.n_samples,
+                                         "sample_fraction": trial.n_samples / max(obs.n_samples, 1)}
         best_err, chosen = math.inf, candidates[0]
         for name in candidates:
             m = _model(name, known)
+            params = list(m.param_names)
             ts = time.perf_counter()
-            fit = _solve(m, train_obs, solver, loss, options, cb)
+            try:
+                fit, m, notes = _fit(m, train_obs, solver, loss, options, cb, scalars)
+            except SolverError as exc:
+                raise ReconstructionError(f"auto, trial fit of {name}: {exc}") from None
             err = _heldout_error(m, fit, test_obs, sampling)
             report.selection.append({"model": name, "heldout_mae": err, "seconds": time.perf_counter() - ts,
-                                     "params": list(m.param_names)})
+                                     "params": params,
+                                     **({"scalars": {k: v["value"] for k, v in notes.items()}} if notes else {})})
             if err < best_err * (1 - auto_gain):
                 best_err, chosen = err, name
             else:
@@ -434,29 +488,17 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     # -- solve ----------------------------------------------------------------------------------
     t = time.perf_counter()
-    scalar_notes = {}
     try:
-        to_fit = [n for n in scalars if n in mdl.param_names]
-        # with scalars to fit, the per-texel fit first — without the reflectance sharing, which would replace
-        # the texels' own coat by a few materials' (bilinear layered scene: coat η 1.645 against 1.5006 from the
-        # 3 texels that determine it) — then each scalar's median where it is observable, held fixed in a second
-        # fit of the rest
-        first = dict(options, joint_iterations=0, share=False) if to_fit and solver == "fast" else options
-        fit = _solve(mdl, obs, solver, loss, first, cb)
-        if to_fit:
-            values, notes = _fit_scalars(mdl, fit, to_fit)
-            scalar_notes = notes
-            for n, note in notes.items():
-                if not note["measured"]:
-                    report.warnings.append(f"parameter '{n}' is fitted as one value for the object but is "
-                                           f"unobservable in every texel; its value {note['value']} is a guess")
-            mdl = KnownParams(getattr(mdl, "base", mdl), {**getattr(mdl, "known", {}), **values})
-            fit = _solve(mdl, obs, solver, loss, options, cb)
+        fit, mdl, scalar_notes = _fit(mdl, obs, solver, loss, options, cb, scalars)
     except SolverError as exc:
         raise ReconstructionError(str(exc)) from None
     finally:
         if bar is not None:
             bar.close()
+    for n, note in scalar_notes.items():
+        if not note["measured"]:
+            report.warnings.append(f"parameter '{n}' is fitted as one value for the object but is "
+                                   f"unobservable in every texel; its value {note['value']} is a guess")
     times["solve"] = time.perf_counter() - t
     known_used = getattr(mdl, "known", {})
     unused = sorted(set(materials.CANONICAL) - set(mdl.param_names) - set(known_used))
@@ -515,13 +557,17 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     t = time.perf_counter()
     from .metrics import determined_at_truth, image_metrics, map_errors, observability_errors
 
-    if ds.gt is not None:
+    gt_size = tuple(next(iter(ds.gt.maps.values())).shape[:2]) if ds.gt is not None else None
+    if ds.gt is not None and gt_size != tuple(obs.map_size):
+        report.warnings.append(f"no texel errors against the ground truth: its maps are {gt_size[1]}×{gt_size[0]}, "
+                               f"the fitted ones {obs.map_size[1]}×{obs.map_size[0]} (texture_size / --tex "
+                               f"left unset fits at the truth's size)")
+    elif ds.gt is not None:
         # fitted values (raw) on every observed texel, on the texels where each map is observable (judged at the
         # estimate) and, when the photos were rendered by the fitted model, on those it is determined at the truth
         determined = None
         gt_model = ds.gt.build_model()
-        if gt_model.name == getattr(mdl, "base", mdl).name and all(
-                tuple(m.shape[:2]) == tuple(obs.map_size) for m in ds.gt.maps.values()):
+        if gt_model.name == getattr(mdl, "base", mdl).name:
             determined = determined_at_truth(gt_model, obs, ds.gt.maps, sampling=sampling,
                                              noise=options.get("noise"), observable_std=options.get("observable_std"))
         both = observability_errors(fit.raw, ds.gt.maps, observed, fit.unobservable, ds.gt.regions,
@@ -709,6 +755,10 @@ def _summary(r: Report) -> str:
     if r.selection:
         lines.append("auto: " + " → ".join(f"{s['model']} (held-out MAE {s['heldout_mae']:.4g})"
                                            for s in r.selection))
+        tr = r.samples.get("auto_trials")
+        if tr and tr["sample_fraction"] < 1:
+            lines.append(f"auto's trial fits ran on {tr['texture_size']}² maps with {tr['sample_fraction']:.0%} of the "
+                         f"samples ({tr['samples']}); the chosen model was then fitted at full size")
     if "maps" in r.errors:
         truth = r.errors.get("maps_determined_at_truth", {})
         lines.append("errors vs ground truth, RMSE / max: on observed texels | on texels where the map is observable "
