@@ -204,7 +204,11 @@ def _fit(model, obs: Observations, solver: str, loss: str, options: dict, progre
     (:func:`_fit_scalars`), held fixed in a second fit of the rest. Returns (fit, the model fitted — with the
     scalars as known values —, notes on the scalars for the report)."""
     to_fit = [n for n in scalars if n in model.param_names]
-    first = dict(options, joint_iterations=0, share=False) if to_fit and solver == "fast" else options
+    first = options
+    if to_fit and solver == "fast":
+        # only the scalars are kept from it, taken where they are observable: 16 roughness values do
+        # (bilinear 256² layered scene: 24.9 → 18.6 s, coat η and roughness unchanged to 5 digits)
+        first = dict(options, joint_iterations=0, share=False, grid=options.get("grid") or 16)
     fit = _solve(model, obs, solver, loss, first, progress)
     if not to_fit:
         return fit, model, {}
