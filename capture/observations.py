@@ -29,6 +29,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from materials.geometry import Angles
@@ -66,6 +67,9 @@ class Observations:
         drops: pixels dropped per reason (:data:`DROP_REASONS`), summed over views.
         n_views: number of views; image_size: ``(height, width)`` per view.
         n_lights: number of point/directional lights in the scene.
+        noise_residual: ``[S, 3]`` optional image-space noise residual of each sample's pixel
+            (:func:`noise_residual`, NaN where its 3 × 3 neighbourhood leaves the valid object pixels): a
+            measurement of the photos' noise that no fit enters.
     """
 
     texel: Tensor
@@ -88,6 +92,7 @@ class Observations:
     n_views: int = 1
     image_size: list = field(default_factory=list)
     n_lights: int = 1
+    noise_residual: Tensor | None = None
 
     # -- sizes --------------------------------------------------------------------------------
     @property
@@ -192,7 +197,8 @@ class Observations:
             irradiance=self.irradiance[pk], view=self.view[keep], pixel=self.pixel[keep], uv=opt(self.uv),
             n=opt(self.n), v=opt(self.v), bilinear_index=opt(self.bilinear_index),
             bilinear_weight=opt(self.bilinear_weight), env_terms=envs, drops=dict(self.drops),
-            n_views=self.n_views, image_size=list(self.image_size), n_lights=self.n_lights)
+            n_views=self.n_views, image_size=list(self.image_size), n_lights=self.n_lights,
+            noise_residual=opt(self.noise_residual))
 
     def select_views(self, views: Sequence[int]) -> Observations:
         """Only the samples of the given view indices."""
@@ -220,6 +226,26 @@ def _check_image(img: Tensor, h: int, w: int, where: str) -> Tensor:
         raise ObservationError(f"{where}: photo is {img.shape[1]}×{img.shape[0]} pixels but the camera is "
                                f"{w}×{h}; resize the photo or fix the camera's width/height")
     return img
+
+
+#: Immerkær's noise mask (1996): zero on planes and on the quadratic terms x², y² of an image, so that on smooth
+#: shading its response is the noise; the sum of its squared entries is 36, so ``(N ∗ I) / 6`` has the noise's std.
+_IMMERKAER = torch.tensor([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]]) / 6.0
+
+
+def noise_residual(photo: Tensor, valid: Tensor) -> Tensor:
+    """``[H, W, 3]`` image-space noise residual of a linear photo ``[H, W, 3]``: Immerkær's mask (J. Immerkær, "Fast
+    noise variance estimation", CVIU 1996) divided by 6, so that on smooth shading under white noise of std σ each
+    value has std σ. NaN where the 3 × 3 neighbourhood leaves ``valid [H, W]`` (bool: object pixels, finite, not
+    clipped). Edges and highlights give large values at few pixels, so the noise level is read from robust
+    statistics (the median of :func:`capture.solvers.photo_noise_ratio`)."""
+    img = photo.permute(2, 0, 1)[:, None]                                            # [3, 1, H, W]
+    k = _IMMERKAER.to(img)[None, None]
+    r = F.conv2d(F.pad(img, (1, 1, 1, 1)), k)[:, 0].permute(1, 2, 0)
+    # 3 × 3 erosion, outside the image counting as invalid
+    ok = -F.max_pool2d(-F.pad(valid[None, None].to(img.dtype), (1, 1, 1, 1)), 3, stride=1)[0, 0] > 0.5
+    ok = ok & torch.isfinite(r).all(-1)
+    return torch.where(ok[..., None], r, torch.full_like(r, float("nan")))
 
 
 def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[int, int], *,
@@ -327,8 +353,11 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
             sel = ok[e.index]
             envs.append((e.light, local[e.index[sel]]))
         uv = g.uv[keep_g].to(dt)
+        valid = torch.zeros(n_pix, dtype=torch.bool, device=finite.device)
+        valid[g.pixel] = finite & ~clipped_s
+        resid = noise_residual(torch.nan_to_num(photo / exposures[vi]), valid.reshape(g.height, g.width))
         parts.append(dict(uv=uv, n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
-                          radiance=pix[keep_g] / exposures[vi],
+                          radiance=pix[keep_g] / exposures[vi], noise=resid.reshape(-1, 3)[g.pixel[keep_g]],
                           pixel=g.pixel[keep_g], pairs=pairs, envs=envs, view=vi, size=(g.height, g.width)))
     # concatenate views, offsetting sample indices
     offs, S = [], 0
@@ -363,7 +392,8 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         pair_light=torch.cat(pl), angles=angles, irradiance=torch.cat(irr), view=view, pixel=cat("pixel"),
         uv=uv, n=cat("n"), v=cat("v"), bilinear_index=bi, bilinear_weight=bw,
         env_terms=[(light, torch.cat(idx)) for light, idx in envs_all.values()], drops=drops,
-        n_views=len(parts), image_size=[p["size"] for p in parts], n_lights=max(len(lights), 1))
+        n_views=len(parts), image_size=[p["size"] for p in parts], n_lights=max(len(lights), 1),
+        noise_residual=cat("noise"))
 
 
 def _random_unit(n: int, gen: torch.Generator, dtype) -> Tensor:

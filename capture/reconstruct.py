@@ -751,6 +751,10 @@ def _summary(r: Report) -> str:
         lines.append(f"reflectance sharing seeded from {r.fit['share_anchors']} roughly determined texels "
                      f"(thresholds × {r.fit['share_anchor_factor']:g}: fewer than 1 % of the texels determine every "
                      f"material parameter)")
+    ratio = r.fit.get("photo_noise_ratio")
+    if ratio is not None and ratio > 1:
+        lines.append(f"photo noise: {math.sqrt(ratio):.1f}× the noise model's std (measured in image space); the "
+                     f"reflectance sharing weighs each texel's own photos accordingly")
     pooled = r.fit.get("pooled", {})
     if pooled.get("block"):
         why = (f"the lights stay fixed: {pooled['distinct_lights']} positions for {pooled['view_light_pairs']} "

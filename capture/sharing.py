@@ -124,19 +124,41 @@ def _box_sum(x: Tensor, s: int) -> Tensor:
     return c[:, s:, s:] - c[:, :-s, s:] - c[:, s:, :-s] + c[:, :-s, :-s]
 
 
-def _excess(costs: Tensor, residuals: Tensor | None) -> Tensor:
+#: Prior weight (degrees of freedom) of the pooled misfit in a texel's misfit estimate (:func:`_misfit`).
+MISFIT_PRIOR_DOF = 6.0
+
+
+def _misfit(costs: Tensor, residuals: Tensor, pooled: float | None = None, unknowns: int = 3) -> Tensor:
+    """``[T]`` misfit s² ≥ 1 of each texel's best candidate: its χ² per residual — and, when the photos' noise
+    measured in image space exceeds the noise model (``pooled`` = :func:`capture.solvers.photo_noise_ratio` > 1),
+    at least the estimate moderated towards it, ``(χ²_best + ν₀ s²_pool) / (dof + ν₀)`` with ν₀ =
+    :data:`MISFIT_PRIOR_DOF` and dof = residuals − ``unknowns`` (the albedo solved in closed form). A texel with one
+    sample has no misfit of its own (its closed-form albedo fits that sample exactly), so under photo noise far
+    above the noise model its χ² differences were taken at face value: with shot noise the gold's lower band (1
+    sample per texel at grazing angles) rejected the gold by 9–24 χ² and took dark dielectrics. Unchanged on
+    noise-free photos."""
+    best = costs.min(0).values
+    s2 = (best / residuals.clamp_min(1)).clamp_min(1.0)
+    if pooled is not None and pooled > 1.0:
+        dof = (residuals - unknowns).clamp_min(0)
+        s2 = torch.maximum(s2, (best + MISFIT_PRIOR_DOF * pooled) / (dof + MISFIT_PRIOR_DOF))
+    return s2
+
+
+def _excess(costs: Tensor, residuals: Tensor | None, pooled: float | None = None) -> Tensor:
     """``[K, T]`` χ² of each candidate above the texel's best; with ``residuals`` (``[T]``) a texel that
     its best candidate explains worse than the noise model (bilinear mixing at an edge, a material no
-    candidate matches) has its differences deflated by that misfit s² = max(1, χ²_best / residuals)."""
+    candidate matches, photo noise) has its differences deflated by that misfit (:func:`_misfit`)."""
     best = costs.min(0).values
     excess = costs - best
     if residuals is not None:
-        excess = excess / (best / residuals.clamp_min(1)).clamp_min(1.0)
+        excess = excess / _misfit(costs, residuals, pooled)
     return excess
 
 
 def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, cap: float | None = None,
-            residuals: Tensor | None = None, prior: Tensor | None = None) -> tuple[Tensor, Tensor]:
+            residuals: Tensor | None = None, prior: Tensor | None = None,
+            pooled: float | None = None) -> tuple[Tensor, Tensor]:
     """Per texel one candidate, decided at the finest scale where the evidence is conclusive.
 
     A texel's *excess* cost of a candidate is its χ² above the texel's best; the candidates it
@@ -156,6 +178,8 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, ca
             explains worse than the noise model (χ²/residuals = s² > 1: bilinear mixing at an edge, a
             material no candidate matches) has its excesses divided by s².
         prior: ``[K, T]`` extra cost added to the (deflated) excesses, e.g. :func:`_albedo_prior`.
+        pooled: the photos' noise against the noise model (:func:`capture.solvers.photo_noise_ratio`), which
+            the misfit deflation moderates towards (:func:`_misfit`).
     Returns:
         ``(label [T], scale [T])`` — the box size that decided each texel (0 where unobserved).
     """
@@ -165,7 +189,7 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, ca
     if K == 1:
         scale[observed] = 1
         return label, scale
-    excess = _excess(costs, residuals)
+    excess = _excess(costs, residuals, pooled)
     if prior is not None:
         excess = excess + prior
         excess = excess - excess.min(0).values
@@ -188,7 +212,7 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, ca
 
 
 def _supported(costs: Tensor, own: Tensor, cap: float | None, residuals: Tensor | None,
-               min_evidence: float) -> Tensor:
+               min_evidence: float, pooled: float | None = None) -> Tensor:
     """``[K]`` bool: the candidates the photos need, by backward elimination.
 
     A candidate's *evidence* is what the texels that prefer it would lose without it: the sum over the
@@ -198,7 +222,7 @@ def _supported(costs: Tensor, own: Tensor, cap: float | None, residuals: Tensor 
     two duplicates (evidence 0 each) one goes and the other then holds their texels' evidence.
     """
     K = costs.shape[0]
-    excess = _excess(costs, residuals)
+    excess = _excess(costs, residuals, pooled)
     alive = torch.ones(K, dtype=torch.bool, device=costs.device)
     while int(alive.sum()) > 1:
         two = excess.masked_fill(~alive[:, None], math.inf).topk(2, 0, largest=False)
@@ -406,7 +430,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         Unchanged θ (``info["materials"] = []``) when the model has nothing to share or there are
         no anchors.
     """
-    from .solvers import ACC, _groups, _linear_solve, std_threshold
+    from .solvers import ACC, _groups, _linear_solve, photo_noise_ratio, std_threshold
 
     t0 = time.perf_counter()
     if candidates < 1 or rounds < 1 or refit_iterations < 0 or not (evidence >= 0 and math.isfinite(evidence)):
@@ -462,6 +486,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     y, w = chi.radiance.to(ACC), chi.weight.to(ACC)
     label = torch.zeros(T, dtype=torch.long, device=dev)
     residuals = 3.0 * torch.bincount(obs.texel, minlength=T).to(ACC)
+    pool_s2 = photo_noise_ratio(obs, noise) if misfit else None
     own = residuals > 0
     kmeans_label = torch.cdist(feats, centres / thr).argmin(1)
     scale = torch.zeros(T, dtype=torch.long, device=dev)
@@ -480,7 +505,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                     mat = torch.cat([mat, new_mat])
                     K = mat.shape[0]
             if min_evidence > 0:
-                alive = _supported(costs, observed & own, cap, residuals if misfit else None, min_evidence)
+                alive = _supported(costs, observed & own, cap, residuals if misfit else None, min_evidence, pool_s2)
                 if not bool(alive.all()):
                     # a material the photos do not need exists only to absorb weakly observed texels: a duplicate,
                     # a spare k-means cluster of border mixtures. Drop it; the anchors it held (k-means labels) and
@@ -506,7 +531,8 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                     a_lab[anchors[stat_set]] = kmeans_label
                 prior = (albedo_prior * _albedo_prior(layout.unpack(cands)[per_texel[0].name], stat_set, a_lab, own)
                          ).clamp_max(prior_cap)
-            label, scale = _assign(costs, observed, H, W, evidence, cap, residuals if misfit else None, prior)
+            label, scale = _assign(costs, observed, H, W, evidence, cap, residuals if misfit else None, prior,
+                                   pool_s2)
             theta = cands[label, torch.arange(T, device=dev)]
             decided = {int(x): int((scale == x).sum()) for x in scale[observed].unique()}
             mat = _refit(model, layout, chi, theta, mat, label, scols, groups, y, w, refit_iterations)
@@ -523,7 +549,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     lab = torch.where(observed, label, torch.full_like(label, -1))
     mats = layout.unpack(mat)
     info.update(materials=[{s.name: mats[s.name][k].tolist() for s in shared} for k in range(K)], labels=lab,
-                material_cost=material_cost, decided_at=decided,
+                material_cost=material_cost, decided_at=decided, photo_noise_ratio=pool_s2,
                 texels_per_material=torch.bincount(label[observed], minlength=K).tolist(), pruned=pruned,
                 share_s=time.perf_counter() - t0)
     return theta, info

@@ -401,6 +401,28 @@ def noise_sigma(y: Tensor, noise) -> Tensor:
     return rel * torch.maximum(y.abs(), torch.full_like(y, floor * med))
 
 
+#: Median of the χ² distribution with one degree of freedom: a robust variance estimate divides the median square by it.
+_CHI2_1_MEDIAN = 0.454936
+
+
+def photo_noise_ratio(obs: Observations, noise=NOISE) -> float | None:
+    """The photos' noise variance relative to the noise model ``noise`` (:func:`noise_sigma`), measured in image
+    space: the median over samples and channels of ``(e / σ)²`` with ``e`` the samples' noise residual
+    (:func:`capture.observations.noise_residual`), divided by the median of χ²₁ — about 1 when the model's σ is
+    the photos' noise, ≈ 0 on a noise-free rendering (default scene: 0.0002), 27 with shot noise of a 3 000 e⁻
+    full well, 83 with 1 000 e⁻ and 8-bit sRGB (docs/reconstruction.md, "Session 13"). No fit enters it, so
+    neither does a model's misfit. None when the observations carry no residuals or fewer than 100 samples have
+    one."""
+    e = obs.noise_residual
+    if e is None:
+        return None
+    ok = torch.isfinite(e).all(-1)
+    if int(ok.sum()) < 100:
+        return None
+    sig = noise_sigma(obs.radiance.to(ACC), noise)[ok]
+    return float((e[ok].to(ACC) / sig).square().median()) / _CHI2_1_MEDIAN
+
+
 def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor, groups, *, loss: str = "l2",
                   delta: float = 1.0, noise=NOISE, sampling: str = "nearest") -> tuple[Tensor, Tensor, Tensor]:
     """Marginal posterior standard deviation of every parameter column in every texel.
@@ -1071,7 +1093,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                                        pool_block=pooled)
         info.update(share_s=sinfo["share_s"], materials=sinfo["materials"], shared=sinfo["shared"],
                     share_anchors=int(anchors.sum()), share_anchor_factor=factor, share_pruned=sinfo.get("pruned", 0),
-                    pooled_tiles=sinfo.get("pooled_tiles", 0))
+                    pooled_tiles=sinfo.get("pooled_tiles", 0), photo_noise_ratio=sinfo.get("photo_noise_ratio"))
         if progress is not None:
             progress("share", it, history[-1])
         # nothing to share from (no texel determined the shared parameters, or the model has none):

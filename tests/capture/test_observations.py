@@ -55,3 +55,49 @@ def test_observe_views_counts_drops_on_a_rendered_sphere():
     assert sum(obs.drops.values()) + obs.n_samples == 48 * 48
     pred = obs.predict(model, obs.per_sample({"albedo": maps["albedo"]}))
     torch.testing.assert_close(pred, obs.radiance, rtol=1e-5, atol=1e-6)
+
+
+def test_noise_residual_reads_the_noise_and_not_smooth_shading():
+    from capture.observations import noise_residual
+
+    gen = torch.Generator().manual_seed(0)
+    H = W = 200
+    y, x = torch.meshgrid(torch.linspace(0, 1, H, dtype=torch.float64), torch.linspace(0, 1, W, dtype=torch.float64),
+                          indexing="ij")
+    # any quadratic (planes, x², y², xy) is annihilated by Immerkær's mask: the residual is pure noise
+    smooth = (0.3 + 0.2 * x - 0.1 * y + 0.4 * x * x - 0.3 * y * y + 0.25 * x * y)[..., None].expand(H, W, 3)
+    valid = torch.ones(H, W, dtype=torch.bool)
+    valid[90:110, 50:70] = False                                   # a hole (background, clipped pixels)
+    r = noise_residual(smooth, valid)
+    ok = torch.isfinite(r).all(-1)
+    assert float(r[ok].abs().max()) < 1e-12
+    # NaN exactly where the 3 × 3 neighbourhood leaves the valid pixels or the image
+    expect = torch.zeros(H, W, dtype=torch.bool)
+    expect[1:-1, 1:-1] = True
+    expect[89:111, 49:71] = False
+    assert torch.equal(ok, expect)
+    # white noise of std σ on top reads σ (std of the residual), per channel
+    sigma = torch.tensor([0.01, 0.05, 0.2], dtype=torch.float64)
+    noisy = smooth + sigma * torch.randn(H, W, 3, generator=gen, dtype=torch.float64)
+    std = noise_residual(noisy, valid)[ok].std(0)
+    torch.testing.assert_close(std, sigma, rtol=0.03, atol=0)
+
+
+def test_photo_noise_ratio_by_hand():
+    from types import SimpleNamespace
+
+    from capture.solvers import NOISE, noise_sigma, photo_noise_ratio
+
+    gen = torch.Generator().manual_seed(1)
+    y = torch.rand(20000, 3, generator=gen, dtype=torch.float64) * 2
+    sig = noise_sigma(y, NOISE)
+    for k in (0.5, 3.0):
+        e = k * sig * torch.randn(20000, 3, generator=gen, dtype=torch.float64)
+        e[:500] = float("nan")                                        # pixels whose neighbourhood left the object
+        e[500:700] = 100.0                                            # edges, highlights: outliers the median ignores
+        ratio = photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=e), NOISE)
+        assert abs(ratio / k**2 - 1) < 0.05, (k, ratio)
+    # a noise model of 3 % instead of 1 %: the same photos read 9× less
+    assert abs(photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=e), (0.03, 0.1)) / 1.0 - 1) < 0.05
+    assert photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=None), NOISE) is None
+    assert photo_noise_ratio(SimpleNamespace(radiance=y[:50], noise_residual=e[600:650]), NOISE) is None

@@ -11,6 +11,7 @@ from capture.sharing import (
     _assign,
     _box_sum,
     _excess,
+    _misfit,
     _supported,
     kmeans_pp,
     share_materials,
@@ -357,6 +358,40 @@ def test_excess_deflates_texels_the_best_candidate_cannot_explain():
     # texel 0 fits within the noise (χ²/n = 1/3 → s² = 1): excess 30; texel 1: s² = 4 → 400 / 4 = 100
     torch.testing.assert_close(e, torch.tensor([[0.0, 0.0], [30.0, 100.0]], dtype=torch.float64))
     torch.testing.assert_close(_excess(costs, None)[1], torch.tensor([30.0, 400.0], dtype=torch.float64))
+
+
+def test_misfit_is_moderated_towards_the_photos_noise():
+    # texels: one sample fitted exactly (3 residuals, 3 albedo unknowns: dof 0), 10 samples within the noise model,
+    # 10 samples at 40× the model
+    costs = torch.tensor([[0.0, 27.0, 1200.0], [5.0, 40.0, 1300.0]], dtype=torch.float64)
+    residuals = torch.tensor([3.0, 30.0, 30.0], dtype=torch.float64)
+    torch.testing.assert_close(_misfit(costs, residuals), torch.tensor([1.0, 1.0, 40.0], dtype=torch.float64))
+    # photos measured at 25× the noise model: (χ²_best + 6 · 25) / (dof + 6) = 150 / 6, 177 / 33 and 1350 / 33
+    # (above its own 40)
+    torch.testing.assert_close(_misfit(costs, residuals, 25.0),
+                               torch.tensor([25.0, 177.0 / 33.0, 1350.0 / 33.0], dtype=torch.float64))
+    # noise-free photos (ratio ≤ 1) change nothing
+    torch.testing.assert_close(_misfit(costs, residuals, 0.3), _misfit(costs, residuals))
+    torch.testing.assert_close(_excess(costs, residuals, 25.0)[1], torch.tensor([5.0 / 25.0, 13.0 * 33.0 / 177.0,
+                                                                                 100.0 * 33.0 / 1350.0],
+                                                                                dtype=torch.float64))
+
+
+def test_one_sample_texels_under_photo_noise_follow_the_albedo_prior():
+    # a row of 9 texels with one sample each: noise makes the true material (0) look 20 χ² worse than a wrong one
+    # (1), whose albedo distribution rejects the texels' albedo (prior 14). Taken at face value the photos outweigh
+    # the albedo and every texel takes the wrong material (the gold's grazing band under shot noise: 9–24 χ²); with
+    # the photos measured at 25× the noise model the 20 χ² are noise and the albedo decides, at one texel.
+    T = 9
+    costs = torch.stack([torch.full((T,), 20.0), torch.zeros(T)]).double()
+    prior = torch.stack([torch.zeros(T), torch.full((T,), 14.0)]).double()
+    residuals = torch.full((T,), 3.0, dtype=torch.float64)
+    observed = torch.ones(T, dtype=torch.bool)
+    label, _ = _assign(costs, observed, 1, T, evidence=10.0, cap=15.0, residuals=residuals, prior=prior)
+    assert label.tolist() == [1] * T
+    label, scale = _assign(costs, observed, 1, T, evidence=10.0, cap=15.0, residuals=residuals, prior=prior,
+                           pooled=25.0)
+    assert label.tolist() == [0] * T and scale.tolist() == [1] * T
 
 
 def test_footprint_counts_bilinear_neighbours_with_positive_weight_only():
