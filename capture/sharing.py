@@ -124,25 +124,20 @@ def _box_sum(x: Tensor, s: int) -> Tensor:
     return c[:, s:, s:] - c[:, :-s, s:] - c[:, s:, :-s] + c[:, :-s, :-s]
 
 
-#: Prior weight (degrees of freedom) of the pooled misfit in a texel's misfit estimate (:func:`_misfit`).
-MISFIT_PRIOR_DOF = 6.0
-
-
 def _misfit(costs: Tensor, residuals: Tensor, pooled: float | None = None, unknowns: int = 3) -> Tensor:
     """``[T]`` misfit s² ≥ 1 of each texel's best candidate: its χ² per residual — and, when the photos' noise
     measured in image space exceeds the noise model (``pooled`` = :func:`capture.solvers.photo_noise_ratio` > 1),
-    at least the estimate moderated towards it, ``(χ²_best + ν₀ s²_pool) / (dof + ν₀)`` with ν₀ =
-    :data:`MISFIT_PRIOR_DOF` and dof = residuals − ``unknowns`` (the albedo solved in closed form). A texel with one
+    at least the estimate moderated towards it (:func:`capture.solvers.moderated_misfit`, dof = residuals −
+    ``unknowns``, the albedo solved in closed form). A texel with one
     sample has no misfit of its own (its closed-form albedo fits that sample exactly), so under photo noise far
     above the noise model its χ² differences were taken at face value: with shot noise the gold's lower band (1
     sample per texel at grazing angles) rejected the gold by 9–24 χ² and took dark dielectrics. Unchanged on
     noise-free photos."""
+    from .solvers import moderated_misfit
+
     best = costs.min(0).values
-    s2 = (best / residuals.clamp_min(1)).clamp_min(1.0)
-    if pooled is not None and pooled > 1.0:
-        dof = (residuals - unknowns).clamp_min(0)
-        s2 = torch.maximum(s2, (best + MISFIT_PRIOR_DOF * pooled) / (dof + MISFIT_PRIOR_DOF))
-    return s2
+    return torch.maximum((best / residuals.clamp_min(1)).clamp_min(1.0),
+                         moderated_misfit(best, residuals - unknowns, pooled))
 
 
 def _excess(costs: Tensor, residuals: Tensor | None, pooled: float | None = None) -> Tensor:

@@ -423,6 +423,21 @@ def photo_noise_ratio(obs: Observations, noise=NOISE) -> float | None:
     return float((e[ok].to(ACC) / sig).square().median()) / _CHI2_1_MEDIAN
 
 
+#: Prior weight (degrees of freedom) of the photos' measured noise in a texel's misfit (:func:`moderated_misfit`).
+MISFIT_PRIOR_DOF = 6.0
+
+
+def moderated_misfit(chi2: Tensor, dof: Tensor, pooled: float | None) -> Tensor:
+    """A texel's residual variance in units of the noise model, ``(χ² + ν₀ s²) / (dof + ν₀)`` with ``s²`` =
+    ``pooled`` (:func:`photo_noise_ratio`, the photos' noise measured in image space) and ν₀ =
+    :data:`MISFIT_PRIOR_DOF` — the texel's own estimate χ²/dof shrunk towards the measured noise, as much as its few
+    degrees of freedom need (none for a texel whose unknowns fit its samples exactly). Zeros (no floor) when
+    ``pooled`` is None or ≤ 1: on noise-free photos the callers keep their own estimate unchanged."""
+    if pooled is None or pooled <= 1.0:
+        return torch.zeros_like(chi2)
+    return (chi2 + MISFIT_PRIOR_DOF * pooled) / (dof.clamp_min(0) + MISFIT_PRIOR_DOF)
+
+
 def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor, groups, *, loss: str = "l2",
                   delta: float = 1.0, noise=NOISE, sampling: str = "nearest") -> tuple[Tensor, Tensor, Tensor]:
     """Marginal posterior standard deviation of every parameter column in every texel.
@@ -433,7 +448,9 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
     1 % of the signal — a well-exposed photo — never below 0.1 % of the median radiance) and IRLS
     weights ``w`` of a robust loss, the posterior covariance of a texel is
     ``C = s² (Jᵀ diag(w/σ²) J)⁻¹`` with ``s² = max(1, χ²/dof)`` (the residual variance, when the
-    fit explains the photos worse than the noise model says). The marginal std of a parameter is
+    fit explains the photos worse than the noise model says) — and, when the photos' noise measured in image space
+    exceeds the model's (:func:`photo_noise_ratio`), at least :func:`moderated_misfit`: a texel with few samples
+    cannot tell its noise from its χ², which its unknowns absorb. The marginal std of a parameter is
     ``sqrt(C_pp)``: it accounts for every trade-off with the other parameters (albedo vs f0, the
     f0·α² degeneracy of a GGX tail seen without a highlight), which a one-parameter test misses.
     A direction no residual constrains gets a variance of ~1e12 (a 1e-12 relative ridge).
@@ -482,7 +499,8 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
         var = torch.diagonal(cov, dim1=-2, dim2=-1)
         bad = (info != 0)[:, None] | ~torch.isfinite(var) | (var < 0)
         var = torch.where(bad, torch.full_like(var, 1e12), var)
-        s2 = (chi / (nres - P).clamp_min(1)).clamp_min(1.0)
+        s2 = torch.maximum((chi / (nres - P).clamp_min(1)).clamp_min(1.0),
+                           moderated_misfit(chi, nres - P, photo_noise_ratio(obs, noise)))
         std = (var * s2[:, None]).sqrt()
         std = torch.where(observed[:, None], std, torch.full_like(std, math.inf))
     return std, observed, pred

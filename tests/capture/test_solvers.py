@@ -1,5 +1,7 @@
 """Solver core on observations built directly from Angles + a model (no renderer)."""
 
+import math
+
 import pytest
 import torch
 
@@ -73,6 +75,35 @@ def test_posterior_std_flags_the_albedo_f0_trade_off():
         med[spt] = {k: float(std[:, lay.cols(k)].median()) for k in ("albedo", "f0", "roughness")}
     assert med[4]["albedo"] > 0.012 and med[4]["f0"] > 0.02
     assert all(med[16][k] < 0.5 * med[4][k] for k in med[4])
+
+
+def test_posterior_std_follows_the_photos_measured_noise():
+    # Lambert texels with 1 and with 30 samples, photos at the truth (χ² = 0). A texel's own χ²/dof cannot show the
+    # photos' noise — with one sample there is no dof at all — so with image-space residuals reading the noise
+    # model's variance × ratio the std grows by √((0 + 6 · ratio) / (dof + 6)): × √ratio for one sample (dof 0),
+    # by √(6 · ratio / 93) for 30 samples (dof 87, floored at 1); without residuals, or with residuals below the
+    # model's noise, it is as before.
+    from dataclasses import replace
+
+    from capture.solvers import NOISE, Layout, _groups, noise_sigma, photo_noise_ratio, posterior_std
+
+    model = materials.get("lambert")
+    lay = Layout.of(model)
+    gt = {"albedo": torch.rand(12, 12, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 0.8 + 0.1}
+    canon = gt["albedo"].reshape(144, 3)
+    gen = torch.Generator().manual_seed(4)
+    for spt, dof in ((1, 0), (30, 87)):
+        obs = synthetic_observations(model, gt, samples_per_texel=spt)
+        std0, _, _ = posterior_std(model, lay, obs, canon, _groups(lay))
+        sig = noise_sigma(obs.radiance, NOISE)
+        for k in (5.0, 0.5):
+            noisy = replace(obs, noise_residual=k * sig * torch.randn(obs.n_samples, 3, generator=gen,
+                                                                       dtype=torch.float64))
+            ratio = photo_noise_ratio(noisy)
+            assert abs(ratio / k**2 - 1) < 0.3, (k, ratio)
+            std, _, _ = posterior_std(model, lay, noisy, canon, _groups(lay))
+            expect = math.sqrt(max(1.0, 6 * ratio / (dof + 6))) if ratio > 1 else 1.0
+            torch.testing.assert_close(std / std0, torch.full_like(std, expect))
 
 
 def test_posterior_std_with_a_bilinear_footprint():
