@@ -96,8 +96,9 @@ def test_photo_noise_ratio_by_hand():
         e[:500] = float("nan")                                        # pixels whose neighbourhood left the object
         e[500:700] = 100.0                                            # edges, highlights: outliers the median ignores
         ratio = photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=e), NOISE)
-        assert abs(ratio / k**2 - 1) < 0.05, (k, ratio)
+        # the 10 % quantile of 58 500 χ²₁ values has a relative std of 2.5 % (p(1 − p) / (n f(q)²))
+        assert abs(ratio / k**2 - 1) < 0.1, (k, ratio)
     # a noise model of 3 % instead of 1 %: the same photos read 9× less
-    assert abs(photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=e), (0.03, 0.1)) / 1.0 - 1) < 0.05
+    assert abs(photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=e), (0.03, 0.1)) / 1.0 - 1) < 0.1
     assert photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=None), NOISE) is None
     assert photo_noise_ratio(SimpleNamespace(radiance=y[:50], noise_residual=e[600:650]), NOISE) is None
