@@ -754,7 +754,7 @@ def _summary(r: Report) -> str:
     ratio = r.fit.get("photo_noise_ratio")
     if ratio is not None and ratio > 1:
         lines.append(f"photo noise: {math.sqrt(ratio):.1f}× the noise model's std (measured in image space); the "
-                     f"reflectance sharing weighs each texel's own photos accordingly")
+                     f"confidence maps and the reflectance sharing weigh each texel's photos accordingly")
     pooled = r.fit.get("pooled", {})
     if pooled.get("block"):
         why = (f"the lights stay fixed: {pooled['distinct_lights']} positions for {pooled['view_light_pairs']} "
