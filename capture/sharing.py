@@ -128,11 +128,10 @@ def _misfit(costs: Tensor, residuals: Tensor, pooled: float | None = None, unkno
     """``[T]`` misfit s² ≥ 1 of each texel's best candidate: its χ² per residual — and, when the photos' noise
     measured in image space exceeds the noise model (``pooled`` = :func:`capture.solvers.photo_noise_ratio` > 1),
     at least the estimate moderated towards it (:func:`capture.solvers.moderated_misfit`, dof = residuals −
-    ``unknowns``, the albedo solved in closed form). A texel with one
-    sample has no misfit of its own (its closed-form albedo fits that sample exactly), so under photo noise far
-    above the noise model its χ² differences were taken at face value: with shot noise the gold's lower band (1
-    sample per texel at grazing angles) rejected the gold by 9–24 χ² and took dark dielectrics. Unchanged on
-    noise-free photos."""
+    ``unknowns``: the albedo's 3 channels are solved in closed form). A texel with one sample has no misfit of its
+    own (its closed-form albedo fits that sample exactly), so under photo noise far above the noise model its χ²
+    differences were taken at face value: with shot noise the gold's lower band (1 sample per texel at grazing
+    angles) rejected the gold by 9–24 χ² and took dark dielectrics. Unchanged on noise-free photos."""
     from .solvers import moderated_misfit
 
     best = costs.min(0).values
