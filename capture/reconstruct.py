@@ -208,7 +208,8 @@ def _fit(model, obs: Observations, solver: str, loss: str, options: dict, progre
     if to_fit and solver == "fast":
         # only the scalars are kept from it, taken where they are observable: 16 roughness values do
         # (bilinear 256² layered scene: 24.9 → 18.6 s, coat η and roughness unchanged to 5 digits)
-        first = dict(options, joint_iterations=0, share=False, grid=options.get("grid") or 16)
+        first = dict(options, joint_iterations=0, share=False,
+                     grid=16 if options.get("grid") is None else options["grid"])
     fit = _solve(model, obs, solver, loss, first, progress)
     if not to_fit:
         return fit, model, {}
