@@ -54,8 +54,8 @@ from materials.roughness import half_max_angle
 from .observations import Observations, observe_views
 from .solvers import LOSSES, FitResult, SolverError, solve_adam, solve_fast
 
-__all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "AUTO_TRIAL_TEXTURE", "SCALARS",
-           "UNRESOLVED_WARN", "unresolved_roughness"]
+__all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "AUTO_TRIAL_TEXTURE",
+           "AUTO_TRIAL_MIN_SAMPLES", "SCALARS", "UNRESOLVED_WARN", "unresolved_roughness"]
 
 #: Candidate models of ``model="auto"``, cheapest first (names not registered are skipped).
 AUTO_CANDIDATES = ("lambert", "ggx-lambert", "gotanda2012-layered")
@@ -173,26 +173,30 @@ def _fit_scalars(model, fit: FitResult, names) -> tuple[dict[str, list[float]], 
     return values, notes
 
 
-#: ``model="auto"`` fits its candidates on maps of at most this many texels a side (:func:`_trial_observations`).
+#: ``model="auto"`` fits its candidates on maps of at most this many texels a side (:func:`_trial_observations`)...
 AUTO_TRIAL_TEXTURE = 128
+#: ... when that coarser copy keeps at least this many samples.
+AUTO_TRIAL_MIN_SAMPLES = 10_000
 
 
-def _trial_observations(observe, texture_size: int, fit_views: list[int]) -> Observations:
+def _trial_observations(observe, obs: Observations, texture_size: int, fit_views: list[int]) -> Observations:
     """The observations ``model="auto"`` judges its candidates on: the fitted views, re-observed on maps of
     :data:`AUTO_TRIAL_TEXTURE`² texels when the maps are larger, with the samples thinned by the same area ratio
     (a fixed-seed draw) so a texel keeps as many samples as at full size. The question a trial answers — which
     reflectance model explains the photos — does not need the full resolution, and a trial's cost grows with the
     samples and texels (default scene, 256² maps: the three trial fits 44 s → 16 s, same choice; docs/
-    reconstruction.md, "Session 13"). Maps of at most that size are judged on the full observations: on a 64²
-    layered scene halving them would make ggx-lambert gain < 5 % over lambert, and auto stop before the layered
-    model."""
+    reconstruction.md, "Session 13"). Otherwise — maps of at most that size (on a 64² layered scene halving them
+    made ggx-lambert gain < 5 % over lambert, and auto stopped before the layered model), or a copy with fewer than
+    :data:`AUTO_TRIAL_MIN_SAMPLES` samples (small photos of large maps) — the full observations ``obs`` (of the
+    fitted views)."""
     size = min(texture_size, AUTO_TRIAL_TEXTURE)
+    if size == texture_size:
+        return obs
     trial = observe(size)
-    if size < texture_size:
-        gen = torch.Generator().manual_seed(0)
-        keep = torch.rand(trial.n_samples, generator=gen) < (size / texture_size) ** 2
-        trial = trial.select(keep.to(trial.device))
-    return trial.select_views(fit_views)
+    gen = torch.Generator().manual_seed(0)
+    keep = torch.rand(trial.n_samples, generator=gen) < (size / texture_size) ** 2
+    trial = trial.select(keep.to(trial.device)).select_views(fit_views)
+    return trial if trial.n_samples >= AUTO_TRIAL_MIN_SAMPLES else obs
 
 
 def _fit(model, obs: Observations, solver: str, loss: str, options: dict, progress,
@@ -459,7 +463,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     # -- model selection --------------------------------------------------------------------------
     t = time.perf_counter()
     if len(candidates) > 1:
-        trial = _trial_observations(observe, texture_size, fit_views)
+        trial = _trial_observations(observe, obs, texture_size, fit_views)
         held = fit_views[3::4] if len(fit_views) >= 4 else []
         train_obs = trial.select_views([i for i in fit_views if i not in held]) if held else trial
         test_obs = trial.select_views(held) if held else trial

@@ -112,16 +112,17 @@ def test_auto_chooses_the_layered_model_for_a_coated_scene(tmp_path):
     assert "auto's trial fits ran on" not in (tmp_path / "o" / "summary.txt").read_text()
 
 
-def test_auto_judges_large_maps_on_a_coarser_copy_of_the_problem(lambert_ds, tmp_path):
+def test_auto_judges_large_maps_on_a_coarser_copy_of_the_problem(lambert_ds, tmp_path, monkeypatch):
     # Maps above AUTO_TRIAL_TEXTURE² texels: the trials run on maps of that size with the samples thinned by the area
-    # ratio (a fixed-seed draw), so each texel keeps as many samples; smaller maps keep the full observations.
+    # ratio (a fixed-seed draw), so each texel keeps as many samples; smaller maps, and copies left with fewer than
+    # AUTO_TRIAL_MIN_SAMPLES samples, keep the full observations.
+    import capture.reconstruct as R
     from capture.dataset import load_dataset
     from capture.observations import observe_views
-    from capture.reconstruct import AUTO_TRIAL_TEXTURE, _trial_observations
     from renderer.gbuffer import render_gbuffer
     from renderer.shading import prepare
 
-    assert AUTO_TRIAL_TEXTURE == 128
+    assert R.AUTO_TRIAL_TEXTURE == 128 and R.AUTO_TRIAL_MIN_SAMPLES == 10_000
     ds = load_dataset(lambert_ds)
     preps = [prepare(render_gbuffer(ds.mesh, v.camera, 1), ds.mesh, v.lights, shadows=True) for v in ds.views]
     photos = [p.radiance for p in ds.load_images()]
@@ -131,21 +132,26 @@ def test_auto_judges_large_maps_on_a_coarser_copy_of_the_problem(lambert_ds, tmp
         sizes.append(size)
         return observe_views(preps, photos, (size, size), exposure=1.0, bilinear=True)
 
-    coarse = observe(128).select_views([0, 1, 3])
-    trial = _trial_observations(observe, 256, [0, 1, 3])
+    views = [0, 1, 3]
+    full = {size: observe(size).select_views(views) for size in (96, 192, 256)}
+    # this small dataset's quarter is below the minimum: the full observations come back, untouched
+    assert R._trial_observations(observe, full[256], 256, views) is full[256]
+    monkeypatch.setattr(R, "AUTO_TRIAL_MIN_SAMPLES", 100)
+    coarse = observe(128).select_views(views)
+    trial = R._trial_observations(observe, full[256], 256, views)
     assert sizes[-1] == 128 and trial.map_size == (128, 128)
-    assert set(trial.view.tolist()) == {0, 1, 3}
+    assert set(trial.view.tolist()) == set(views)
     # a quarter of the samples, a subset of the coarse observation's (same pixels, texels and radiance)
     n = coarse.n_samples
     assert abs(trial.n_samples - n / 4) < 4 * math.sqrt(n * 0.25 * 0.75), (trial.n_samples, n)
     key = lambda o: set(zip((o.view * 10**6 + o.pixel).tolist(), o.texel.tolist(), strict=True))  # noqa: E731
     assert key(trial) < key(coarse)
-    assert torch.equal(_trial_observations(observe, 256, [0, 1, 3]).pixel, trial.pixel)  # deterministic
-    # 1.5× larger maps keep (128 / 192)² of the samples; maps of 128² or less are observed as they are
-    part = _trial_observations(observe, 192, [0, 1, 3])
+    assert torch.equal(R._trial_observations(observe, full[256], 256, views).pixel, trial.pixel)  # deterministic
+    # 1.5× larger maps keep (128 / 192)² of the samples; maps of 128² or less are judged on the full observations
+    part = R._trial_observations(observe, full[192], 192, views)
     assert abs(part.n_samples - n * (128 / 192) ** 2) < 4 * math.sqrt(n * 0.25), (part.n_samples, n)
-    full = _trial_observations(observe, 96, [0, 1, 3])
-    assert sizes[-1] == 96 and full.n_samples == observe(96).select_views([0, 1, 3]).n_samples
+    calls = len(sizes)
+    assert R._trial_observations(observe, full[96], 96, views) is full[96] and len(sizes) == calls
     # the report says so
     rep = reconstruct(lambert_ds, model="auto", out_dir=tmp_path / "o", progress=False, texture_size=256,
                       iterations=5, grid=4)
@@ -155,6 +161,7 @@ def test_auto_judges_large_maps_on_a_coarser_copy_of_the_problem(lambert_ds, tmp
     # the ground truth is 32²: no texel errors against it, and the report says why
     assert "maps" not in rep.errors and any("no texel errors against the ground truth" in w for w in rep.warnings)
     assert "auto's trial fits ran on 128² maps" in (tmp_path / "o" / "summary.txt").read_text()
+
 
 def test_bad_input(lambert_ds, tmp_path):
     with pytest.raises(ReconstructionError, match="lambert"):          # lists available names
