@@ -1405,7 +1405,12 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     ratios (2nd, 3rd iteration): default scene 0.0018, 0.0003; fixed rig 0.011, 0.0045; 1.3-texel checker
     1.6, 0.047; shot noise 3 000 e⁻ 24.7, 18.9 (unit 0.016) and on the small scene 59.9, 40.1 (unit 0.0075).
     All-texel albedo with / without the adaptation: shot noise 0.0264 / 0.0425, small scene with shot noise
-    0.0378 / 0.0438, 1.3-texel checker 0.0201 / 0.0195, noise-free scenes unchanged (ratio < 1).
+    0.0378 / 0.0438, 1.3-texel checker 0.0201 / 0.0195, noise-free scenes unchanged (ratio < 1). Since session 13
+    the ratio is at least the photos' noise measured in image space (:func:`photo_noise_ratio`) when the
+    observations carry residuals: default scene with 3 000 e⁻ all-texel albedo 0.0212 → 0.0191, with 1 000 e⁻ sRGB
+    0.0333 → 0.0303 (f0 and roughness within ±0.0002). Using it instead of the fit's ratio, from the first iteration
+    on, changed the noise-free stress rows whose fit misfits (grazing 3°, black albedo: worse) and cost the 300 e⁻
+    row 0.0605 → 0.0698; as a floor from the second iteration on only the noisy rows move (docs/stability.md).
 
     ``anchor_weight > 0`` (with ``sharing > 0``) adds a unary term to the prior that ties every texel's material
     parameters (all but the per-texel ones, i.e. f0 and roughness for GGX + Lambert) to their values in the
@@ -1489,6 +1494,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
         c = cost_of(th)
         return c + (prior.energy(canon_of(th)) if prior is not None else 0.0)
 
+    image_ratio = photo_noise_ratio(obs, noise) if adapt else None
     lam = 1e-3
     cost = total_of(theta)
     history, accepted = [cost / n_res], []
@@ -1500,8 +1506,9 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             r = y - pred
             if prior is not None and adapt and it >= 1:
                 # the photos' noise against the noise model, from the residuals of the bilinear fit so far (at
-                # it = 0 they still hold the sharing's misfit); the adaptive units shrink with it
-                ratio = float((r / noise_sigma(y, noise)).square().mean(-1).median())
+                # it = 0 they still hold the sharing's misfit) and, where the observations carry image-space
+                # residuals, at least the noise measured there; the adaptive units shrink with it
+                ratio = max(image_ratio or 0.0, float((r / noise_sigma(y, noise)).square().mean(-1).median()))
                 prior.set_units({n: base_units[n] / max(1.0, ratio) for n in adapt})
                 noise_ratios.append(ratio)
                 cost = total_of(theta)
