@@ -414,16 +414,18 @@ def photo_noise_ratio(obs: Observations, noise=NOISE) -> float | None:
     the median, because texture and shading the mask does not annihilate are structure at many pixels of a small or
     foreshortened image, while noise is at all of them: noise-free renderings read 0.0000–0.11 (the median read
     0.27–11.6 on the stress table's grazing planes, 0.77 on a 64-px sphere), shot noise of a 3 000 e⁻ full well
-    27.5 (median 29.6), 300 e⁻ 210 (median 234). None when the observations carry no residuals or fewer than 100
-    samples have one."""
+    27.5 (median 29.6), 300 e⁻ 210 (median 234). Channels whose radiance is 0 are left out: a colour channel the
+    material absorbs entirely (the layered scene's coat takes G and B of its base) reads 0 in every pixel, noise or
+    not, and held the quantile at 0 on a noisy layered scene. None when the observations carry no residuals or fewer
+    than 100 sample channels have one."""
     e = obs.noise_residual
     if e is None:
         return None
-    ok = torch.isfinite(e).all(-1)
+    y = obs.radiance.to(ACC)
+    ok = torch.isfinite(e) & (y > 0)
     if int(ok.sum()) < 100:
         return None
-    sig = noise_sigma(obs.radiance.to(ACC), noise)[ok]
-    z2 = (e[ok].to(ACC) / sig).square().flatten()
+    z2 = (e.to(ACC) / noise_sigma(y, noise))[ok].square()
     return float(z2.kthvalue(max(1, int(NOISE_QUANTILE * z2.numel()))).values) / _CHI2_1_Q10
 
 

@@ -94,11 +94,16 @@ def test_photo_noise_ratio_by_hand():
     for k in (0.5, 3.0):
         e = k * sig * torch.randn(20000, 3, generator=gen, dtype=torch.float64)
         e[:500] = float("nan")                                        # pixels whose neighbourhood left the object
-        e[500:700] = 100.0                                            # edges, highlights: outliers the median ignores
+        e[500:700] = 100.0                                            # edges, highlights: outliers the quantile ignores
         ratio = photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=e), NOISE)
         # the 10 % quantile of 58 500 χ²₁ values has a relative std of 2.5 % (p(1 − p) / (n f(q)²))
         assert abs(ratio / k**2 - 1) < 0.1, (k, ratio)
     # a noise model of 3 % instead of 1 %: the same photos read 9× less
     assert abs(photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=e), (0.03, 0.1)) / 1.0 - 1) < 0.1
     assert photo_noise_ratio(SimpleNamespace(radiance=y, noise_residual=None), NOISE) is None
-    assert photo_noise_ratio(SimpleNamespace(radiance=y[:50], noise_residual=e[600:650]), NOISE) is None
+    assert photo_noise_ratio(SimpleNamespace(radiance=y[:30], noise_residual=e[600:630]), NOISE) is None
+    # a channel the material absorbs entirely reads 0 in every pixel, residual 0: left out, not a quiet photo
+    y0, e0 = y.clone(), e.clone()
+    y0[:, 2], e0[:, 2] = 0.0, 0.0
+    ratio = photo_noise_ratio(SimpleNamespace(radiance=y0, noise_residual=e0), NOISE)
+    assert abs(ratio / 9.0 - 1) < 0.1, ratio
