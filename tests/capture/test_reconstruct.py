@@ -7,6 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+import capture.reconstruct as R
 import materials
 from capture.dataset import DatasetError
 from capture.observations import synthetic_observations
@@ -241,6 +242,45 @@ def test_layered_family_with_coat_scalars(tmp_path):
     assert float((ior - 1.5).abs().max()) < 1e-4
     assert not (tmp_path / "o" / "confidence_coat_ior.exr").exists()
     assert "one value per object: coat_ior 1.5 (fitted: median of" in (tmp_path / "o" / "summary.txt").read_text()
+
+
+def test_highlight_observations_keep_the_texels_nearest_a_mirror_configuration(monkeypatch):
+    # every texel's largest n·h over its own pairs, by a plain loop; the kept samples must be exactly those of the
+    # top SCALAR_TEXEL_FRACTION of the texels (at least SCALAR_MIN_TEXELS), and maps with fewer texels keep all
+    model = materials.get("ggx-lambert")
+    maps = {s.name: torch.full((6, 6, s.channels), s.default) for s in model.params}
+    obs = synthetic_observations(model, maps, samples_per_texel=3, highlight_fraction=0.3, seed=2)
+    best = {}
+    for q, s in enumerate(obs.pair_sample.tolist()):
+        t = int(obs.texel[s])
+        best[t] = max(best.get(t, -2.0), float(obs.angles.nh[q]))
+    top = set(sorted(best, key=best.get, reverse=True)[:9])             # 25 % of 36 texels
+    monkeypatch.setattr(R, "SCALAR_TEXEL_FRACTION", 0.25)
+    monkeypatch.setattr(R, "SCALAR_MIN_TEXELS", 4)
+    kept = R._highlight_observations(obs)
+    assert set(kept.texel.tolist()) == top
+    assert kept.n_samples == 3 * len(top)
+    assert torch.equal(kept.radiance, obs.radiance[torch.tensor([int(t) in top for t in obs.texel])])
+    monkeypatch.setattr(R, "SCALAR_MIN_TEXELS", 36)
+    assert R._highlight_observations(obs) is obs
+
+
+def test_coat_scalars_from_the_highlight_texels_only(tmp_path, monkeypatch):
+    # the 64 px layered scene of the test above (≤ 256 texels: all kept by default) with the first fit held to the
+    # 15 % of its observed texels that came closest to a mirror configuration. Measured: 1 114 of the 4 806 samples,
+    # coat η and roughness 1.4999989 / 0.10000002 (median of 4 / 4 texels; from all texels 1.4999996 / 0.10000002
+    # of 19 / 4). The same share of the texels with the *smallest* n·h (108 samples) measures neither anywhere.
+    root = tmp_path / "layered"
+    make_synthetic(small_scene("gotanda2012-layered", image_size=64, texture_size=16, n_views=6, sampling="nearest",
+                               uniform={"coat_roughness": 0.1}), root)
+    monkeypatch.setattr(R, "SCALAR_TEXEL_FRACTION", 0.15)
+    monkeypatch.setattr(R, "SCALAR_MIN_TEXELS", 1)
+    rep = reconstruct(root, model="gotanda2012-layered", out_dir=tmp_path / "o", progress=False, dtype=torch.float64)
+    sc = rep.fit["scalars"]
+    assert sc["coat_ior"]["first_fit_samples"] < 0.3 * rep.samples["valid"], (sc, rep.samples)
+    assert abs(sc["coat_ior"]["value"][0] - 1.5) < 1e-4 and abs(sc["coat_roughness"]["value"][0] - 0.1) < 1e-4, sc
+    assert sc["coat_ior"]["measured"] and sc["coat_roughness"]["measured"]
+    assert min(v["psnr"] for v in rep.views) > 60
 
 
 def test_known_parameters(tmp_path, lambert_ds):
