@@ -147,6 +147,11 @@ def clamped_linear_absorption_mean(absorption: Tensor, nv: Tensor) -> Tensor:
     return torch.where(ok, c_safe - 2.0 * a + a * a / c_safe, torch.zeros_like(c))
 
 
+def _one_value(x: Tensor) -> bool:
+    """Whether ``x`` ``[..., C]`` holds one value broadcast over its batch (an expanded tensor, stride 0)."""
+    return x.shape[-1] == 1 and all(st == 0 or n == 1 for st, n in zip(x.stride()[:-1], x.shape[:-1], strict=True))
+
+
 def relative_f0(f0: Tensor, coat_ior: Tensor) -> Tensor:
     """Normal-incidence reflectance of a bottom of air-f0 ``f0`` under a coat of index η₁.
 
@@ -233,6 +238,7 @@ class GotandaLayered(Model):
         self.params: tuple[ParamSpec, ...] = tuple(self.bottom.params) + (ABSORPTION, COAT_IOR, COAT_ROUGHNESS)
         self._has_f0 = "f0" in names
         self._has_ior = "ior" in names
+        self._coat_cache = None
 
     # -- pieces ---------------------------------------------------------------------------------
     def bottom_params(self, p: Mapping[str, Tensor]) -> dict[str, Tensor]:
@@ -273,11 +279,34 @@ class GotandaLayered(Model):
             return absorption_exact(g.nl, g.nv, p["absorption"], p["coat_ior"])
         return absorption_linear(g.nl, g.nv, p["absorption"])
 
+    def coat_terms(self, g: Angles, p: Mapping[str, Tensor], cosine: bool) -> tuple[Tensor, Tensor]:
+        """(:meth:`coat_specular`, :meth:`transmittance`), each ``[..., 1]``: functions of the angles and the coat's
+        η and roughness only.
+
+        When the coat is one value for every pair and needs no gradient — the coat fitted as two scalars for the
+        object and held known (:class:`materials.KnownParams`, as ``capture.reconstruct`` fits it) — a solver
+        evaluates the model hundreds of times on the same angles with the same coat, so the last result is kept
+        and reused for the same :class:`Angles` object (unchanged in place), coat values and batch shape.
+        Measured on the default-size layered scene's second fit (256² maps, 204 000 samples, 2 threads):
+        docs/reconstruction.md, "Session 14".
+        """
+        n1, r = p["coat_ior"], p["coat_roughness"]
+        key = None
+        if _one_value(n1) and _one_value(r) and not (n1.requires_grad or r.requires_grad):
+            key = (cosine, tuple(n1.shape), tuple(r.shape), n1.dtype, n1.device, float(n1.reshape(-1)[0]),
+                   float(r.reshape(-1)[0]), tuple(x._version for x in (g.nl, g.nv, g.nh, g.lh, g.lv)))
+            cached = self._coat_cache
+            if cached is not None and cached[0] is g and cached[1] == key:
+                return cached[2], cached[3]
+        top, trans = self.coat_specular(g, p, cosine), self.transmittance(g, p)
+        self._coat_cache = (g, key, top, trans) if key is not None else None
+        return top, trans
+
     def _eval(self, g: Angles, p: Mapping[str, Tensor], cosine: bool) -> Tensor:
-        top = self.coat_specular(g, p, cosine)
+        top, trans = self.coat_terms(g, p, cosine)
         pb = self.bottom_params(p)
         bot = self.bottom.cosine_brdf(g, pb) if cosine else self.bottom.brdf(g, pb)
-        val = top + self.transmittance(g, p) * self.attenuation(g, p) * bot
+        val = top + trans * self.attenuation(g, p) * bot
         return torch.where(g.front, val, torch.zeros_like(val))
 
     def brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:

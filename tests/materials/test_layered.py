@@ -297,3 +297,43 @@ def test_extremes_finite_and_float32_matches_float64(nl, nv, phi, anti, r, rc, f
     g = Angles.from_vectors(N, l, v)
     finite_and_float32_matches(lambda g_, p_: m.brdf(g_, p_) + m.cosine_brdf(g_, p_), m.cosine_brdf, g, p,
                                (l, v, *p.values()), rtol=5e-4)
+
+
+def test_known_coat_terms_are_reused_only_while_angles_and_coat_are_unchanged():
+    # a KnownParams coat is one expanded value per pair: the coat's terms are kept for the same Angles object. Every
+    # evaluation must still equal a fresh model's — after either coat value changes, for the BRDF after its cosine
+    # form, on other angles, after the angles change in place, with a per-pair coat, and with a coat that needs a
+    # gradient (which must flow)
+    base = materials.get("gotanda2012-layered")
+    free = {k: v for k, v in _params(base, 64, 3).items() if k not in ("coat_ior", "coat_roughness")}
+    g = _random(64, 4)
+
+    def known(eta, r, model=None):
+        return materials.KnownParams(model or materials.get("gotanda2012-layered"),
+                                     {"coat_ior": eta, "coat_roughness": r})
+
+    m1 = known(1.5, 0.6, base)
+    first = m1.cosine_brdf(g, free)
+    assert float(base._coat_cache[2].amax()) > 0.01                                   # a coat lobe that counts
+    assert base.coat_terms(g, m1.full(free), True)[0] is base._coat_cache[2]          # kept, and reused
+    assert torch.equal(m1.cosine_brdf(g, free), first)
+    assert torch.equal(first, known(1.5, 0.6).cosine_brdf(g, free))
+    for eta, r in ((1.3, 0.6), (1.3, 0.4), (1.5, 0.6)):                               # one value changes at a time
+        assert torch.equal(known(eta, r, base).cosine_brdf(g, free), known(eta, r).cosine_brdf(g, free))
+    assert torch.equal(m1.brdf(g, free), known(1.5, 0.6).brdf(g, free))               # the cosine flag is in the key
+    m1.cosine_brdf(g, free)
+    g2 = _random(64, 5)                                                                 # other angles, same shape
+    assert torch.equal(m1.cosine_brdf(g2, free), known(1.5, 0.6).cosine_brdf(g2, free))
+    m1.cosine_brdf(g, free)
+    g.nh.mul_(0.9)                                                                      # angles changed in place
+    assert torch.equal(m1.cosine_brdf(g, free), known(1.5, 0.6).cosine_brdf(g, free))
+    one_r = torch.tensor([0.6], dtype=D64).expand(64, 1)
+    for lo in (1.2, 1.4):                                                               # η per pair, same first value
+        per_pair = dict(free, coat_ior=torch.linspace(1.2, lo + 0.3, 64, dtype=D64)[:, None], coat_roughness=one_r)
+        assert torch.equal(base.cosine_brdf(g, per_pair),
+                           materials.get("gotanda2012-layered").cosine_brdf(g, per_pair))
+    assert base._coat_cache is None                                                     # not one value: not kept
+    eta = torch.tensor([1.5], dtype=D64, requires_grad=True)
+    grad_p = dict(free, coat_ior=eta.expand(64, 1), coat_roughness=one_r)
+    (d_eta,) = torch.autograd.grad(base.cosine_brdf(g, grad_p).sum(), eta)
+    assert base._coat_cache is None and float(d_eta.abs()) > 0
