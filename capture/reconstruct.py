@@ -795,6 +795,14 @@ def _summary(r: Report) -> str:
         lines.append(f"reflectance sharing seeded from {r.fit['share_anchors']} roughly determined texels "
                      f"(thresholds × {r.fit['share_anchor_factor']:g}: fewer than 1 % of the texels determine every "
                      f"material parameter)")
+    retry = r.fit.get("share_retry")
+    if retry:
+        floor = retry["noise_floor"]
+        kept = (f"the second fit ({retry['retry_data_cost'] / floor:.2g}× the noise)" if retry["kept"] == "retry"
+                else "the first (the second fitted no better)")
+        lines.append(f"the materials from so few texels missed the photos by {retry['data_cost'] / floor:.0f}× "
+                     f"their noise; seeded again from {retry['anchors']} texels (thresholds × {retry['factor']:g}): "
+                     f"kept {kept}")
     ratio = r.fit.get("photo_noise_ratio")
     if ratio is not None and ratio > 1:
         lines.append(f"photo noise: {math.sqrt(ratio):.1f}× the noise model's std (measured in image space); the "

@@ -798,6 +798,15 @@ def _grid_search(model: Model, layout: Layout, obs: Observations, theta: Tensor,
 #: 0.0587.
 ANCHOR_MIN_FRACTION = 0.01
 ANCHOR_LOOSENING = (1.0, 3.0, 10.0)
+#: When even the last factor of :data:`ANCHOR_LOOSENING` leaves fewer than :data:`ANCHOR_MIN_FRACTION` anchors, the
+#: materials seeded from so few are a guess, and when the joint refinement they start then misses the photos by more
+#: than ``MISFIT_RETRY`` × their noise (:func:`_noise_floor`), the sharing and the refinement run again from the anchors
+#: at ``ANCHOR_RETRY_FACTOR`` × the thresholds, and the fit with the lower data cost is kept (``info["share_retry"]``).
+#: Measured (docs/reconstruction.md, "Session 14"): the default-size layered scene with 3 000 e⁻ shot noise, 18
+#: anchors of 46 264 at × 10, data cost 36 × its noise floor (worst view 35.6 dB) → 391 anchors at × 30, ~0.3 × the
+#: floor; the noise-free one misses by 4.7 × (the floor of the 1 % noise model) and keeps its fit.
+ANCHOR_RETRY_FACTOR = 30.0
+MISFIT_RETRY = 10.0
 
 
 def determined(layout: Layout, std: Tensor, observed: Tensor, observable_std=None,
@@ -818,11 +827,26 @@ def _anchors(layout: Layout, std: Tensor, observed: Tensor, names: Sequence[str]
         return observed, 1.0
     need = ANCHOR_MIN_FRACTION * int(observed.sum())
     for factor in ANCHOR_LOOSENING:
-        good = determined(layout, std, observed, observable_std, factor)
-        anchors = torch.stack([good[n] for n in names]).all(0)
+        anchors = _anchors_at(layout, std, observed, names, observable_std, factor)
         if int(anchors.sum()) >= need:
             break
     return anchors, factor
+
+
+def _anchors_at(layout: Layout, std: Tensor, observed: Tensor, names: Sequence[str], observable_std,
+                factor: float) -> Tensor:
+    """``[T]`` bool: the observed texels that determine every parameter in ``names`` at ``factor`` × the thresholds."""
+    good = determined(layout, std, observed, observable_std, factor)
+    return torch.stack([good[n] for n in names]).all(0)
+
+
+def _noise_floor(obs: Observations, noise, ratio: float | None, loss: str, delta: float) -> float:
+    """The data cost per residual (as :func:`_data_cost` reports it) of residuals as large as the photos' noise: the
+    weighted mean of ρ(σ_sc · √max(1, ratio)), σ from the noise model ``noise`` (:func:`noise_sigma`) and ``ratio``
+    the photos' noise measured in image space relative to it (:func:`photo_noise_ratio`; None = 1)."""
+    sigma = noise_sigma(obs.radiance.to(ACC), noise) * math.sqrt(max(1.0, ratio or 1.0))
+    total = float((robust_rho(sigma, loss, delta).sum(-1) * obs.weight.to(ACC)).sum())
+    return total / float(3 * obs.weight.to(ACC).sum())
 
 
 #: With bilinear sampling the per-texel LM only starts the joint refinement; by default it stops after at least
@@ -1112,6 +1136,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
         from .sharing import share_materials
         shared_names = _shared_default(layout)
         anchors, factor = _anchors(layout, std, observed_n, shared_names, observable_std)
+        scarce = bool(shared_names) and int(anchors.sum()) < ANCHOR_MIN_FRACTION * int(observed_n.sum())
         theta_texel = theta
         theta, sinfo = share_materials(model, obs, layout, theta, anchors, candidates=candidates, noise=noise,
                                        pool_block=pooled)
@@ -1146,9 +1171,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                                 noise=noise, noise_adaptive=("albedo",),
                                 anchor_weight=anchor_weight if share else 0.0)
 
-        shared_start = theta
-        theta, jinfo = joint_from(shared_start)
-        if share:
+        def shared_joint(shared_start, sinfo):
+            theta, jinfo = joint_from(shared_start)
             # the sharing is a proposal. When the refinement it seeds fits the photos worse than the per-texel fit
             # did, the materials miss part of the object (a layered scene whose metals gave no anchor: every metal
             # texel took a dielectric, worst view 27 dB): the texels whose own samples reject their material
@@ -1167,6 +1191,34 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                 if fallback:
                     theta, jinfo = retry, rinfo
                 jinfo["joint_s"] = seconds
+            return theta, jinfo
+
+        if share:
+            theta, jinfo = shared_joint(theta, sinfo)
+            floor = _noise_floor(obs, noise, info.get("photo_noise_ratio"), loss, delta)
+            if scarce and jinfo["joint_data_cost"] > MISFIT_RETRY * floor:
+                anchors2 = _anchors_at(layout, std, observed_n, shared_names, observable_std, ANCHOR_RETRY_FACTOR)
+                start2, sinfo2 = share_materials(model, obs, layout, theta_texel, anchors2, candidates=candidates,
+                                                 noise=noise, pool_block=pooled)
+                retry = {"noise_floor": floor, "data_cost": jinfo["joint_data_cost"], "anchors": int(anchors2.sum()),
+                         "factor": ANCHOR_RETRY_FACTOR, "share_s": sinfo2["share_s"], "kept": "first"}
+                first_fallback = info.pop("sharing_fallback", None)
+                if sinfo2["materials"]:
+                    theta2, jinfo2 = shared_joint(start2, sinfo2)
+                    retry.update(retry_data_cost=jinfo2["joint_data_cost"], joint_s=jinfo2["joint_s"])
+                    if jinfo2["joint_data_cost"] < jinfo["joint_data_cost"]:
+                        retry["kept"] = "retry"
+                        theta, jinfo = theta2, jinfo2
+                        info.update(materials=sinfo2["materials"], share_anchors=int(anchors2.sum()),
+                                    share_anchor_factor=ANCHOR_RETRY_FACTOR, share_pruned=sinfo2.get("pruned", 0),
+                                    pooled_tiles=sinfo2.get("pooled_tiles", 0))
+                if retry["kept"] == "first":
+                    info.pop("sharing_fallback", None)
+                    if first_fallback is not None:
+                        info["sharing_fallback"] = first_fallback
+                info["share_retry"] = retry
+        else:
+            theta, jinfo = joint_from(theta)
         info.update(jinfo)
         history.append(jinfo["joint_history"][-1])
     return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,

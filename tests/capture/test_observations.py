@@ -1,5 +1,7 @@
 """Observations: flat samples, prediction, subsets, coverage, and real G-buffers."""
 
+import math
+
 import torch
 
 import materials
@@ -107,3 +109,26 @@ def test_photo_noise_ratio_by_hand():
     y0[:, 2], e0[:, 2] = 0.0, 0.0
     ratio = photo_noise_ratio(SimpleNamespace(radiance=y0, noise_residual=e0), NOISE)
     assert abs(ratio / 9.0 - 1) < 0.1, ratio
+
+
+def test_noise_floor_by_hand():
+    # the data cost per residual of residuals one noise σ large: σ = 1 % of the radiance above a floor of 10 % of the
+    # median, times √ratio when the photos are noisier than that model; weighted like the data term
+    from types import SimpleNamespace
+
+    from capture.solvers import NOISE, _noise_floor
+
+    y = torch.tensor([[1.0, 2.0, 4.0], [0.1, 0.0, 3.0], [2.0, 2.0, 2.0]], dtype=torch.float64)
+    w = torch.tensor([1.0, 3.0, 2.0], dtype=torch.float64)
+    # the samples' mean radiances 7/3, 1.1/3, 2: median 2, so σ ≥ 0.01 · 0.2
+    sig = 0.01 * torch.tensor([[1.0, 2.0, 4.0], [0.2, 0.2, 3.0], [2.0, 2.0, 2.0]], dtype=torch.float64)
+    by_hand = float((sig.square().sum(-1) * w).sum() / (3 * w.sum()))
+    obs = SimpleNamespace(radiance=y, weight=w)
+    assert math.isclose(_noise_floor(obs, NOISE, None, "l2", 1.0), by_hand, rel_tol=1e-12)
+    assert math.isclose(_noise_floor(obs, NOISE, 0.3, "l2", 1.0), by_hand, rel_tol=1e-12)      # never below the model
+    assert math.isclose(_noise_floor(obs, NOISE, 25.0, "l2", 1.0), 25.0 * by_hand, rel_tol=1e-12)
+    # huber with δ below some residuals: 2δ|r| − δ² there
+    d = 0.02
+    rho = torch.where(sig <= d, sig.square(), 2 * d * sig - d * d)
+    assert math.isclose(_noise_floor(obs, NOISE, None, "huber", d), float((rho.sum(-1) * w).sum() / (3 * w.sum())),
+                        rel_tol=1e-12)
