@@ -803,8 +803,8 @@ ANCHOR_LOOSENING = (1.0, 3.0, 10.0)
 #: than ``MISFIT_RETRY`` × their noise (:func:`_noise_floor`), the sharing and the refinement run again from the anchors
 #: at ``ANCHOR_RETRY_FACTOR`` × the thresholds, and the fit with the lower data cost is kept (``info["share_retry"]``).
 #: Measured (docs/reconstruction.md, "Session 14"): the default-size layered scene with 3 000 e⁻ shot noise, 18
-#: anchors of 46 264 at × 10, data cost 36 × its noise floor (worst view 35.6 dB) → 391 anchors at × 30, ~0.3 × the
-#: floor; the noise-free one misses by 4.7 × (the floor of the 1 % noise model) and keeps its fit.
+#: anchors of 46 264 at × 10, data cost 36 × its noise floor (worst view 35.6 dB) → 393 anchors at × 30, 0.25 × the
+#: floor (62.5 dB); the noise-free one misses by 4.7 × (the floor of the 1 % noise model) and keeps its fit.
 ANCHOR_RETRY_FACTOR = 30.0
 MISFIT_RETRY = 10.0
 
@@ -945,7 +945,9 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             again and the lower data cost wins (``info["sharing_fallback"]``). Layered scene of 128 px, 64² maps,
             coat given: data cost 0.024 → 0.0009 (per-texel fit 0.0049); with the coat fitted, worst / mean view
             27.4 / 34.2 dB in session 5 → 40.1 / 46.5 dB (docs/reconstruction.md, "Session 6"); never triggered on
-            the GGX + Lambert scenes there.
+            the GGX + Lambert scenes there. A second one: seeded from scarce anchors, materials whose refinement misses
+            the photos by more than their noise allows are seeded again from more texels, and the photos judge
+            (:data:`ANCHOR_RETRY_FACTOR`, ``info["share_retry"]``).
         sharing_albedo: the joint refinement's prior links neighbouring texels' albedo too (default; see
             :func:`refine_joint` for the measurements). Where the photos determine a texel's albedo the data win;
             where they barely do (texels read only through a neighbour's bilinear footprint, the grazing band) it
