@@ -217,8 +217,8 @@ def _highlight_observations(obs: Observations) -> Observations:
     docs/reconstruction.md, "Session 14"): first fit 20.7 → 6.1 s on 24 360 of its 204 000 samples, coat η
     1.49991 from 22 texels instead of 29 and roughness 0.10000 from 79 instead of 86, the same to 5 digits; with
     3 000 e⁻ shot noise η / roughness 1.49990 / 0.09998 from 11 / 43 texels (1.49988 / 0.09998 from 13 / 48 with
-    all). Samples lit by environment
-    lights only have no n·h and are left out; without any (sample, light) pair the observations are kept whole.
+    all). Samples lit by environment lights only have no n·h and are left out; without any (sample, light) pair
+    the observations are kept whole.
     """
     H, W = obs.map_size
     if obs.n_pairs == 0:

@@ -1197,8 +1197,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
 
         if share:
             theta, jinfo = shared_joint(theta, sinfo)
-            floor = _noise_floor(obs, noise, info.get("photo_noise_ratio"), loss, delta)
-            if scarce and jinfo["joint_data_cost"] > MISFIT_RETRY * floor:
+            floor = _noise_floor(obs, noise, info.get("photo_noise_ratio"), loss, delta) if scarce else math.inf
+            if jinfo["joint_data_cost"] > MISFIT_RETRY * floor:
                 anchors2 = _anchors_at(layout, std, observed_n, shared_names, observable_std, ANCHOR_RETRY_FACTOR)
                 start2, sinfo2 = share_materials(model, obs, layout, theta_texel, anchors2, candidates=candidates,
                                                  noise=noise, pool_block=pooled)
