@@ -818,19 +818,19 @@ def determined(layout: Layout, std: Tensor, observed: Tensor, observable_std=Non
 
 
 def _anchors(layout: Layout, std: Tensor, observed: Tensor, names: Sequence[str],
-             observable_std) -> tuple[Tensor, float]:
-    """``([T] bool anchors, factor)``: the observed texels whose posterior std (``std [T, P]``) is below ``factor`` ×
-    the observability threshold for every parameter in ``names``, with the smallest factor of
+             observable_std) -> tuple[Tensor, float, bool]:
+    """``([T] bool anchors, factor, scarce)``: the observed texels whose posterior std (``std [T, P]``) is below
+    ``factor`` × the observability threshold for every parameter in ``names``, with the smallest factor of
     :data:`ANCHOR_LOOSENING` that gives at least :data:`ANCHOR_MIN_FRACTION` of the observed texels (the largest
-    otherwise). All observed texels when ``names`` is empty."""
+    otherwise, ``scarce`` True). All observed texels when ``names`` is empty."""
     if not names:
-        return observed, 1.0
+        return observed, 1.0, False
     need = ANCHOR_MIN_FRACTION * int(observed.sum())
     for factor in ANCHOR_LOOSENING:
         anchors = _anchors_at(layout, std, observed, names, observable_std, factor)
         if int(anchors.sum()) >= need:
-            break
-    return anchors, factor
+            return anchors, factor, False
+    return anchors, factor, True
 
 
 def _anchors_at(layout: Layout, std: Tensor, observed: Tensor, names: Sequence[str], observable_std,
@@ -1137,8 +1137,7 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
     if share:
         from .sharing import share_materials
         shared_names = _shared_default(layout)
-        anchors, factor = _anchors(layout, std, observed_n, shared_names, observable_std)
-        scarce = bool(shared_names) and int(anchors.sum()) < ANCHOR_MIN_FRACTION * int(observed_n.sum())
+        anchors, factor, scarce = _anchors(layout, std, observed_n, shared_names, observable_std)
         theta_texel = theta
         theta, sinfo = share_materials(model, obs, layout, theta, anchors, candidates=candidates, noise=noise,
                                        pool_block=pooled)
@@ -1185,18 +1184,18 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                 own = unmatched_texels(model, obs, layout, theta_texel, sinfo, noise=noise)
                 retry, rinfo = joint_from(torch.where(own[:, None], theta_texel, shared_start))
                 fallback = rinfo["joint_data_cost"] < jinfo["joint_data_cost"]
-                info["sharing_fallback"] = {
-                    "per_texel_data_cost": texel_cost, "shared_data_cost": jinfo["joint_data_cost"],
-                    "own_fit_texels": int(own.sum()), "fallback_data_cost": rinfo["joint_data_cost"],
-                    "kept": "fallback" if fallback else "shared"}
+                report = {"per_texel_data_cost": texel_cost, "shared_data_cost": jinfo["joint_data_cost"],
+                          "own_fit_texels": int(own.sum()), "fallback_data_cost": rinfo["joint_data_cost"],
+                          "kept": "fallback" if fallback else "shared"}
                 seconds = jinfo["joint_s"] + rinfo["joint_s"]
                 if fallback:
                     theta, jinfo = retry, rinfo
                 jinfo["joint_s"] = seconds
-            return theta, jinfo
+                return theta, jinfo, report
+            return theta, jinfo, None
 
         if share:
-            theta, jinfo = shared_joint(theta, sinfo)
+            theta, jinfo, fallback_report = shared_joint(theta, sinfo)
             floor = _noise_floor(obs, noise, info.get("photo_noise_ratio"), loss, delta) if scarce else math.inf
             if jinfo["joint_data_cost"] > MISFIT_RETRY * floor:
                 anchors2 = _anchors_at(layout, std, observed_n, shared_names, observable_std, ANCHOR_RETRY_FACTOR)
@@ -1204,21 +1203,18 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                                                  noise=noise, pool_block=pooled)
                 retry = {"noise_floor": floor, "data_cost": jinfo["joint_data_cost"], "anchors": int(anchors2.sum()),
                          "factor": ANCHOR_RETRY_FACTOR, "share_s": sinfo2["share_s"], "kept": "first"}
-                first_fallback = info.pop("sharing_fallback", None)
                 if sinfo2["materials"]:
-                    theta2, jinfo2 = shared_joint(start2, sinfo2)
+                    theta2, jinfo2, fallback2 = shared_joint(start2, sinfo2)
                     retry.update(retry_data_cost=jinfo2["joint_data_cost"], joint_s=jinfo2["joint_s"])
                     if jinfo2["joint_data_cost"] < jinfo["joint_data_cost"]:
                         retry["kept"] = "retry"
-                        theta, jinfo = theta2, jinfo2
+                        theta, jinfo, fallback_report = theta2, jinfo2, fallback2
                         info.update(materials=sinfo2["materials"], share_anchors=int(anchors2.sum()),
                                     share_anchor_factor=ANCHOR_RETRY_FACTOR, share_pruned=sinfo2.get("pruned", 0),
                                     pooled_tiles=sinfo2.get("pooled_tiles", 0))
-                if retry["kept"] == "first":
-                    info.pop("sharing_fallback", None)
-                    if first_fallback is not None:
-                        info["sharing_fallback"] = first_fallback
                 info["share_retry"] = retry
+            if fallback_report is not None:
+                info["sharing_fallback"] = fallback_report
         else:
             theta, jinfo = joint_from(theta)
         info.update(jinfo)
