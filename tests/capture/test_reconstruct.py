@@ -72,9 +72,17 @@ def test_time_saved_by_the_skips_by_hand():
 
 
 def test_auto_stops_at_lambert_for_a_lambert_scene(lambert_ds, tmp_path):
+    # Lambert explains the (noise-free) photos exactly: auto stops there without trying GGX + Lambert (measured
+    # χ² per residual 0.0); with that rule off, GGX + Lambert is tried and its held-out error (0.067 against 0.0005)
+    # stops it
+    rep = reconstruct(lambert_ds, model="auto", out_dir=tmp_path / "held", progress=False, iterations=10, grid=8,
+                      auto_chi2=0)
+    assert rep.model == "lambert" and [s["model"] for s in rep.selection] == ["lambert", "ggx-lambert"]
+    assert rep.selection[-1]["stopped"].startswith("held-out error did not drop")
     rep = reconstruct(lambert_ds, model="auto", out_dir=tmp_path / "auto", progress=False, iterations=10, grid=8)
-    assert rep.model == "lambert"
-    assert rep.selection[0]["model"] == "lambert" and len(rep.selection) == 2
+    assert rep.model == "lambert" and len(rep.selection) == 1
+    assert rep.selection[0]["train_chi2"] < 1e-3 and rep.selection[0]["stopped"].startswith("explains its training")
+    assert rep.skipped["models_not_tried"] == ["ggx-lambert", "gotanda2012-layered"]
     # the time the skips saved, by hand from the report's own counts: every view has the same L point lights, so a
     # shader of every pixel on the object would evaluate (valid + dropped-on-object pixels) × L pairs
     lights = {len(v["lights"]) for v in json.loads((lambert_ds / "scene.json").read_text())["images"]}
@@ -93,6 +101,51 @@ def test_auto_stops_at_lambert_for_a_lambert_scene(lambert_ds, tmp_path):
 
 
 
+def test_misfit_is_a_chi2_per_residual_by_hand():
+    # radiance 1 % above the prediction of the fit's maps: r / σ = 0.01 y / (0.01 · 1.01 y) in every channel (no
+    # value below the noise model's floor of 0.1 × the median), χ² per residual 1 / 1.01²; the photos' measured noise
+    # raises σ only where it exceeds the model's
+    from types import SimpleNamespace
+
+    from capture.solvers import _CHI2_1_Q10, noise_sigma
+
+    model = materials.get("lambert")
+    albedo = torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64) + 0.02 * torch.arange(32, dtype=torch.float64)[:, None]
+    maps = {"albedo": albedo.reshape(4, 8, 3)}
+    obs = synthetic_observations(model, maps, samples_per_texel=8, n_views=2)
+    fit = SimpleNamespace(raw=maps)
+    assert R._misfit(model, fit, obs, "nearest") < 1e-20
+    y = obs.radiance * 1.01
+    brighter = replace(obs, radiance=y)
+    # σ = 1 % of max(y, 0.1 × the median over samples of the mean channel): residual 0.01 y / 1.01 per channel
+    sigma = 0.01 * torch.maximum(y, 0.1 * y.mean(-1).median())
+    chi2 = float(((0.01 * y / 1.01 / sigma) ** 2).mean())
+    assert 0.9 < chi2 < 1 / 1.01**2 and torch.equal(obs.weight, torch.ones_like(obs.weight))
+    assert R._misfit(model, fit, brighter, "nearest") == pytest.approx(chi2, rel=1e-9)
+    # image-space residuals of c σ everywhere read a noise ratio c² / (χ²₁'s 10 % quantile): 4 here, and σ doubles
+    assert torch.allclose(sigma, noise_sigma(y, R.NOISE))
+    for ratio, expected in ((4.0, chi2 / 4), (0.25, chi2)):
+        noisy = replace(brighter, noise_residual=sigma * math.sqrt(ratio * _CHI2_1_Q10))
+        assert R._misfit(model, fit, noisy, "nearest") == pytest.approx(expected, rel=1e-6), ratio
+
+
+def test_auto_stops_once_a_model_explains_its_photos_within_their_noise(tmp_path):
+    # GGX + Lambert photos with shot noise (3 000 e⁻ full well), bilinear, 64 px, 32² maps, 8 views: GGX + Lambert's
+    # trial leaves residuals at the photos' noise and the coated model is not tried; a coated scene keeps trying
+    # (test_auto_chooses_the_layered_model_for_a_coated_scene: GGX + Lambert reads χ² 16 700 there)
+    from capture.photo import PhotoModel
+
+    make_synthetic(small_scene("ggx-lambert", image_size=64, texture_size=32, n_views=8,
+                               photo=PhotoModel(full_well=3000.0)), tmp_path / "ds")
+    rep = reconstruct(tmp_path / "ds", model="auto", out_dir=tmp_path / "o", progress=False)
+    assert rep.model == "ggx-lambert" and [s["model"] for s in rep.selection] == ["lambert", "ggx-lambert"]
+    lam, ggx = rep.selection
+    assert lam["train_chi2"] > 100 * R.AUTO_EXPLAINED_CHI2 and ggx["train_chi2"] <= R.AUTO_EXPLAINED_CHI2, rep.selection
+    assert rep.fit["photo_noise_ratio"] > 5  # the χ² is against the photos' measured noise, not the 1 % model
+    assert rep.skipped["models_not_tried"] == ["gotanda2012-layered"]
+    assert "stopped: explains its training photos within their noise" in (tmp_path / "o" / "summary.txt").read_text()
+
+
 def test_auto_chooses_the_layered_model_for_a_coated_scene(tmp_path):
     # A bilinear layered scene (64 px, 32² maps, 8 views, one coat: η 1.5, roughness 0.1). auto's trial fits fit each
     # candidate as the final fit does, the coat as two scalars for the object. Measured held-out MAE: lambert 0.061,
@@ -103,6 +156,7 @@ def test_auto_chooses_the_layered_model_for_a_coated_scene(tmp_path):
                                n_views=8), tmp_path / "ds")
     rep = reconstruct(tmp_path / "ds", model="auto", out_dir=tmp_path / "o", progress=False)
     assert rep.model == "gotanda2012-layered", rep.selection
+    assert all(s["train_chi2"] > 100 * R.AUTO_EXPLAINED_CHI2 for s in rep.selection[:2]), rep.selection
     mae = {s["model"]: s["heldout_mae"] for s in rep.selection}
     assert mae["gotanda2012-layered"] < 0.8 * mae["ggx-lambert"] < 0.8 * mae["lambert"], mae
     trial = rep.selection[-1]["scalars"]
@@ -171,6 +225,9 @@ def test_bad_input(lambert_ds, tmp_path):
     (tmp_path / "exists").mkdir()
     with pytest.raises(ReconstructionError, match="exists"):
         reconstruct(lambert_ds, model="lambert", out_dir=tmp_path / "exists", progress=False)
+    with pytest.raises(ReconstructionError, match="auto_chi2 must be a number"):
+        reconstruct(lambert_ds, model="auto", out_dir=tmp_path / "z", progress=False, auto_chi2=-1)
+    assert not (tmp_path / "z").exists()
     with pytest.raises(DatasetError):
         reconstruct(tmp_path / "exists", model="lambert", out_dir=tmp_path / "y", progress=False)
     assert not (tmp_path / "y").exists()
