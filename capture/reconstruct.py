@@ -53,7 +53,7 @@ from materials import KnownParams
 from materials.roughness import half_max_angle
 
 from .observations import Observations, observe_views
-from .solvers import LOSSES, NOISE, FitResult, SolverError, noise_sigma, photo_noise_ratio, solve_adam, solve_fast
+from .solvers import LOSSES, NOISE, FitResult, SolverError, photo_noise_ratio, photo_sigma, solve_adam, solve_fast
 
 __all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "AUTO_EXPLAINED_CHI2",
            "AUTO_TRIAL_TEXTURE", "AUTO_TRIAL_MIN_SAMPLES", "SCALARS", "UNRESOLVED_WARN", "unresolved_roughness"]
@@ -288,14 +288,14 @@ def _heldout_error(model, fit: FitResult, obs: Observations, sampling: str = "ne
 
 def _misfit(model, fit: FitResult, obs: Observations, sampling: str, noise=NOISE) -> float:
     """How well a fit explains the photos it was fitted to: the weighted mean over samples and channels of
-    ``(r / σ)²``, ``r`` the residual of the fit's own (raw) maps and σ the photo noise model
-    (:func:`capture.solvers.noise_sigma`: 1 % of the signal) scaled by √ of the photos' noise measured in image space
-    where that exceeds it (:func:`capture.solvers.photo_noise_ratio`) — a χ² per residual, about 1 or less when
-    the model explains the photos as well as their noise allows."""
+    ``(r / σ)²``, ``r`` the residual of the fit's own (raw) maps and σ the photos' noise
+    (:func:`capture.solvers.photo_sigma`: the 1 % noise model, scaled to the noise measured in image space where the
+    photos are noisier) — a χ² per residual, about 1 or less when the model explains the photos as well as their
+    noise allows."""
     with torch.no_grad():
         pred = obs.predict(model, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}, sampling))
-        sigma = noise_sigma(obs.radiance, noise) * math.sqrt(max(1.0, photo_noise_ratio(obs, noise) or 1.0))
-        w = obs.weight.to(pred.dtype)
+        sigma = photo_sigma(obs, noise, photo_noise_ratio(obs, noise))
+        w = obs.weight.to(sigma.dtype)
         chi2 = (((pred - obs.radiance) / sigma) ** 2).sum(-1)
         return float((chi2 * w).sum() / (3 * w.sum()))
 

@@ -840,11 +840,17 @@ def _anchors_at(layout: Layout, std: Tensor, observed: Tensor, names: Sequence[s
     return torch.stack([good[n] for n in names]).all(0)
 
 
+def photo_sigma(obs: Observations, noise, ratio: float | None) -> Tensor:
+    """The photos' noise std ``[S, 3]`` (float64) of each sample: σ of the noise model ``noise`` (:func:`noise_sigma`)
+    times √max(1, ratio), ``ratio`` the photos' noise measured in image space relative to it
+    (:func:`photo_noise_ratio`; None = 1) — the model's σ unless the photos are noisier."""
+    return noise_sigma(obs.radiance.to(ACC), noise) * math.sqrt(max(1.0, ratio or 1.0))
+
+
 def _noise_floor(obs: Observations, noise, ratio: float | None, loss: str, delta: float) -> float:
     """The data cost per residual (as :func:`_data_cost` reports it) of residuals as large as the photos' noise: the
-    weighted mean of ρ(σ_sc · √max(1, ratio)), σ from the noise model ``noise`` (:func:`noise_sigma`) and ``ratio``
-    the photos' noise measured in image space relative to it (:func:`photo_noise_ratio`; None = 1)."""
-    sigma = noise_sigma(obs.radiance.to(ACC), noise) * math.sqrt(max(1.0, ratio or 1.0))
+    weighted mean of ρ(σ_sc), σ from :func:`photo_sigma`."""
+    sigma = photo_sigma(obs, noise, ratio)
     total = float((robust_rho(sigma, loss, delta).sum(-1) * obs.weight.to(ACC)).sum())
     return total / float(3 * obs.weight.to(ACC).sum())
 
