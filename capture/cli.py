@@ -27,8 +27,11 @@ def _cmd_models(args) -> int:
     names = materials.available()
     width = max(len(n) for n in names)
     for name, desc in names.items():
-        params = ", ".join(materials.get(name).param_names)
-        print(f"{name:<{width}}  {desc}\n{'':<{width}}  params: {params}")
+        try:
+            params = "params: " + ", ".join(materials.get(name).param_names)
+        except (FileNotFoundError, ValueError) as exc:  # a model whose data is missing is listed, not fatal
+            params = f"unavailable here: {exc}"
+        print(f"{name:<{width}}  {desc}\n{'':<{width}}  {params}")
     return 0
 
 
