@@ -3,16 +3,27 @@
 import pytest
 import torch
 
+import materials.measured as measured
+
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
+#: The MERL NBRDF weights the ``measured`` model needs (shared/data/merl; ``$SHADECAP_NBRDF_DIR``).
+NBRDF_WEIGHTS = measured.data_dir() / measured.NPZ_NAME
+
+
 def pytest_collection_modifyitems(config, items):
-    if torch.cuda.is_available():
-        return
-    skip = pytest.mark.skip(reason="no CUDA device")
+    """Skip tests marked ``gpu`` without a CUDA device and ``nbrdf`` without the NBRDF weights."""
+    skips = {}
+    if not torch.cuda.is_available():
+        skips["gpu"] = pytest.mark.skip(reason="no CUDA device")
+    if not NBRDF_WEIGHTS.is_file():
+        skips["nbrdf"] = pytest.mark.skip(reason=f"NBRDF weights not found: {NBRDF_WEIGHTS} (see "
+                                                 f"shared/data/merl/README.md)")
     for item in items:
-        if "gpu" in item.keywords:
-            item.add_marker(skip)
+        for key, mark in skips.items():
+            if key in item.keywords:
+                item.add_marker(mark)
 
 
 @pytest.fixture(params=DEVICES)

@@ -6,15 +6,13 @@ import pytest
 import torch
 
 import materials
-import materials.measured as measured  # noqa: E402  registers "measured" (not yet imported by materials/__init__)
+import materials.measured  # noqa: F401  registers "measured" (not yet imported by materials/__init__)
 from capture import brdf_fit as F
 from materials import Model
 from materials.geometry import guarded_pow
 from materials.params import ALBEDO, MIX, ROUGHNESS, SPECULAR
 from materials.roughness import R_MIN, roughness_to_shininess
 
-HAVE_DATA = (measured.data_dir() / measured.NPZ_NAME).is_file()
-needs_data = pytest.mark.skipif(not HAVE_DATA, reason="NBRDF weights (shared/data/merl/nbrdf) not present")
 D64 = torch.float64
 
 
@@ -98,7 +96,7 @@ def test_registered_phong_recovered_from_its_own_data():
         torch.testing.assert_close(r.params[k], v, atol=1e-3, rtol=1e-3, msg=k)
 
 
-@needs_data
+@pytest.mark.nbrdf
 def test_staged_procedure_beats_single_stage_from_a_bad_guess_on_nickel():
     """Nielsen's claim, checked where it holds in our measurements (see capture/brdf_fit.py: it does not hold for
     every model/material; joint fits with restarts are as good or better in all 12 cases we ran)."""
@@ -127,7 +125,7 @@ def test_bad_input_is_named():
         F.fit_brdf("lambert", 3.0, s)
 
 
-@needs_data
+@pytest.mark.nbrdf
 def test_cook_torrance_near_lambert_on_nickel_is_the_grazing_samples_not_a_local_minimum():
     """Cook-Torrance scores near Lambert on nickel (docs/measured-fits.md) because of the grazing samples: fitted
     without them, its narrow lobe matches the rest (L1 w/o grazing 0.34 measured) but over-predicts the grazing

@@ -6,14 +6,12 @@ import pytest
 import torch
 
 import materials
-import materials.measured as measured
+import materials.measured  # noqa: F401  registers "measured"
 from capture import measured_scene as M
 from capture.dataset import load_dataset
 from renderer.shading import shade
 
-HAVE_DATA = (measured.data_dir() / measured.NPZ_NAME).is_file()
-pytestmark = pytest.mark.skipif(not HAVE_DATA, reason="NBRDF weights (shared/data/merl/nbrdf/merl_nbrdf_weights.npz) "
-                                "not present; see shared/data/merl/README.md")
+pytestmark = pytest.mark.nbrdf
 
 
 def _small(**kw):

@@ -8,7 +8,6 @@ import pytest
 import torch
 
 import materials
-import materials.measured as measured
 from capture.dataset import camera_sees_mesh, load_dataset
 from capture.photo import PhotoModel
 from capture.synthetic import (
@@ -30,11 +29,8 @@ from renderer.gbuffer import render_gbuffer
 from renderer.shading import prepare, shade
 from renderer.texture import texel_of
 
-HAVE_DATA = (measured.data_dir() / measured.NPZ_NAME).is_file()
-needs_data = pytest.mark.skipif(not HAVE_DATA, reason="NBRDF weights (shared/data/merl/nbrdf) not present")
 
-
-@pytest.mark.parametrize("name", [pytest.param(n, marks=needs_data) if n == "measured" else n
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.nbrdf) if n == "measured" else n
                                   for n in sorted(materials.available())])
 def test_procedural_maps_hold_exactly_the_model_params_in_range(name):
     model = materials.get(name)

@@ -12,7 +12,7 @@ from materials import Angles
 from materials import measured as M
 
 DATA = M.data_dir()
-pytestmark = pytest.mark.skipif(not (DATA / M.NPZ_NAME).is_file(), reason=f"NBRDF weights not found in {DATA}")
+pytestmark = pytest.mark.nbrdf
 SIX = ["nickel", "two-layer-silver", "violet-rubber", "red-fabric2", "alum-bronze", "blue-metallic-paint"]
 
 
