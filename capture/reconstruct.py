@@ -272,6 +272,12 @@ def _fit(model, obs: Observations, solver: str, loss: str, options: dict, progre
     return _solve(model, obs, solver, loss, options, progress), model, notes
 
 
+def _render(model, maps: Mapping[str, Tensor], obs: Observations, sampling: str) -> Tensor:
+    """The radiance ``[S, 3]`` that ``maps`` (name → ``[H, W, C]``) predict for every sample of ``obs``, no gradient."""
+    with torch.no_grad():
+        return obs.predict(model, obs.per_sample({k: v.to(obs.dtype) for k, v in maps.items()}, sampling))
+
+
 def _heldout_error(model, fit: FitResult, obs: Observations, sampling: str = "nearest") -> float:
     """Mean absolute error of the held-out views re-rendered with the fit's *filled* maps — the maps a user
     gets: where the training views left a parameter unobservable the raw per-texel value is arbitrary, and
@@ -281,9 +287,7 @@ def _heldout_error(model, fit: FitResult, obs: Observations, sampling: str = "ne
     no model predicts from other views — on the measured-material scene 1 % of the pixels held 91 % of the
     squared error, so the RMSE moved by 2 % between models whose held-out PSNR on the benchmark's own views
     differs by 11 dB (docs/reconstruction.md)."""
-    with torch.no_grad():
-        pred = obs.predict(model, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.maps.items()}, sampling))
-    return float((pred - obs.radiance).abs().mean())
+    return float((_render(model, fit.maps, obs, sampling) - obs.radiance).abs().mean())
 
 
 def _misfit(model, fit: FitResult, obs: Observations, sampling: str, noise=NOISE) -> float:
@@ -292,12 +296,10 @@ def _misfit(model, fit: FitResult, obs: Observations, sampling: str, noise=NOISE
     (:func:`capture.solvers.photo_sigma`: the 1 % noise model, scaled to the noise measured in image space where the
     photos are noisier) — a χ² per residual, about 1 or less when the model explains the photos as well as their
     noise allows."""
-    with torch.no_grad():
-        pred = obs.predict(model, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}, sampling))
-        sigma = photo_sigma(obs, noise, photo_noise_ratio(obs, noise))
-        w = obs.weight.to(sigma.dtype)
-        chi2 = (((pred - obs.radiance) / sigma) ** 2).sum(-1)
-        return float((chi2 * w).sum() / (3 * w.sum()))
+    sigma = photo_sigma(obs, noise, photo_noise_ratio(obs, noise))
+    w = obs.weight.to(sigma.dtype)
+    chi2 = (((_render(model, fit.raw, obs, sampling) - obs.radiance) / sigma) ** 2).sum(-1)
+    return float((chi2 * w).sum() / (3 * w.sum()))
 
 
 #: Fraction of the roughness-observable texels with an unresolved highlight peak above which the report warns.
@@ -670,10 +672,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     # the fitted views with the fitted values, the held-out ones with the filled maps a user gets (texels only they
     # see are unobserved in the fit)
     renders = []
-    with torch.no_grad():
-        pred = obs.predict(mdl, obs.per_sample({k: v.to(obs.dtype) for k, v in fit.raw.items()}, sampling))
-        held_pred = held_obs.predict(mdl, held_obs.per_sample({k: v.to(obs.dtype) for k, v in fit.maps.items()},
-                                                              sampling)) if held_obs is not None else None
+    pred = _render(mdl, fit.raw, obs, sampling)
+    held_pred = _render(mdl, fit.maps, held_obs, sampling) if held_obs is not None else None
     for i, v in enumerate(ds.views):
         src, values = (held_obs, held_pred) if i in held_views else (obs, pred)
         H, W = v.camera.height, v.camera.width
