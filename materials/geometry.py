@@ -31,11 +31,20 @@ def safe_normalize(x: Tensor, fallback: Tensor | None = None) -> Tensor:
 
     The gradient is finite everywhere (the double-``where`` trick: the invalid branch never sees
     a zero length). ``fallback`` defaults to +z.
+
+    ``x`` is first divided by its largest absolute component (a constant for autograd: the unit
+    vector is scale-invariant, so value and gradient are unchanged), so the normalisation itself
+    works on a vector of length in [1, √3]. Without it the backward pass of ``x · |x|^-1`` forms
+    ``x (x·g) |x|^-3``, which overflows float32 for |x| ≈ 1e-11 (e.g. the half vector l + v of a
+    grazing mirror pair, n·l = n·v ≈ 1e-11) although the true gradient (I − u uᵀ) g / |x| is finite.
     """
     sq = dot(x, x)
     ok = sq > NORM_EPS
-    safe_sq = torch.where(ok, sq, torch.ones_like(sq))
-    unit = x * torch.rsqrt(safe_sq)
+    scale = x.detach().abs().amax(dim=-1, keepdim=True)
+    scale = torch.where(ok, scale, torch.ones_like(scale))
+    y = x / scale
+    yy = torch.where(ok, dot(y, y), torch.ones_like(sq))
+    unit = y * torch.rsqrt(yy)
     if fallback is None:
         fallback = torch.zeros_like(x)
         fallback[..., 2] = 1.0

@@ -122,8 +122,10 @@ def schuler_optimized(g: Angles, f0: Tensor, e: Tensor) -> Tensor:
     """
     _check(g, f0, "schuler_optimized")
     e = _exponent(e, "schuler_optimized")
-    lh = _lh(g)
-    f = f0 * ((1.0 + e) / (8.0 * math.pi) * guarded_pow(g.nh.clamp(max=1.0), e) / (lh * lh * lh))
+    inv_lh = 1.0 / _lh(g)
+    # times (1/L·H)³ rather than divided by (L·H)³: the backward pass of a division forms num/den², which
+    # overflows float32 at L·H ≈ 1e-6 (den² ≈ 1e-36) although the true derivative (∝ 1/(L·H)⁴ ≤ 1e24) is finite
+    f = f0 * ((1.0 + e) / (8.0 * math.pi) * guarded_pow(g.nh.clamp(max=1.0), e) * (inv_lh * inv_lh * inv_lh))
     return torch.where(g.front, f, torch.zeros_like(f))
 
 

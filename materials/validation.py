@@ -137,6 +137,111 @@ def stress_params(model: Model, m: int, dtype=torch.float64, device=None, seed: 
     return out
 
 
+#: Range of the grazing cosines of :func:`edge_vectors` (log-uniform): from where a float32 cosine is
+#: pure rounding noise (1e-7) to where a lobe is no longer grazing (1e-1).
+GRAZING_LOG10 = (-7.0, -1.0)
+
+
+def _rotation(m: int, gen: torch.Generator) -> Tensor:
+    """``m`` uniformly random rotation matrices ``[m, 3, 3]`` (float64; QR of a Gaussian, sign-fixed)."""
+    q, r = torch.linalg.qr(torch.randn(m, 3, 3, generator=gen, dtype=torch.float64))
+    q = q * torch.sign(torch.diagonal(r, dim1=-2, dim2=-1)).unsqueeze(-2)
+    det = torch.linalg.det(q)
+    q[:, :, 2] *= det.sign().unsqueeze(-1)
+    return q
+
+
+def _polar(c: Tensor, phi: Tensor) -> Tensor:
+    s = torch.sqrt((1.0 - c * c).clamp_min(0.0))
+    return torch.stack([s * torch.cos(phi), s * torch.sin(phi), c], -1)
+
+
+def edge_vectors(m: int, dtype=torch.float64, device=None, seed: int = 0):
+    """``m`` random (n, l, v) triples ``[m, 3]`` that concentrate on the configurations where lobes break.
+
+    One sixth each: (1) l and v uniform over the sphere (back-facing included); (2) both uniform over
+    the upper hemisphere; (3) *grazing mirror pairs*: n·v log-uniform in 10^GRAZING_LOG10, l the mirror
+    of v about n with n·l either equal to n·v or independently grazing and the azimuth off the mirror by 0
+    or ±10^U(−9, −1) rad; (4) exact mirror pairs at any elevation (n·v = U⁴); (5) l = −v and l = v at
+    any elevation, grazing ones included; (6) n·l and n·v drawn from :data:`STRESS_COSINES` (exact 0,
+    ±1e-7, −1e-3 ...) at random azimuths. Half of all triples are then turned by a random rotation, so
+    that n is not +z and the cosines carry the rounding of a general frame. Built in float64, then cast.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    u = lambda k: torch.rand(k, generator=gen, dtype=f64)  # noqa: E731
+    two_pi = 2.0 * math.pi
+    k = m // 6
+    sizes = [k] * 5 + [m - 5 * k]
+    unit = lambda x: x / x.norm(dim=-1, keepdim=True)  # noqa: E731
+    parts_l, parts_v = [], []
+    # (1) sphere
+    parts_l.append(unit(torch.randn(sizes[0], 3, generator=gen, dtype=f64)))
+    parts_v.append(unit(torch.randn(sizes[0], 3, generator=gen, dtype=f64)))
+    # (2) upper hemisphere (uniform in solid angle: cos uniform)
+    parts_l.append(_polar(u(sizes[1]), two_pi * u(sizes[1])))
+    parts_v.append(_polar(u(sizes[1]), two_pi * u(sizes[1])))
+    # (3) grazing mirror pairs
+    kk = sizes[2]
+    lo, hi = GRAZING_LOG10
+    cv = 10.0 ** (lo + (hi - lo) * u(kk))
+    cl = torch.where(u(kk) < 0.5, cv, 10.0 ** (lo + (hi - lo) * u(kk)))
+    pv = two_pi * u(kk)
+    off = torch.where(u(kk) < 0.25, torch.zeros(kk, dtype=f64), 10.0 ** (-9.0 + 8.0 * u(kk)))
+    off = torch.where(u(kk) < 0.5, off, -off)
+    parts_v.append(_polar(cv, pv))
+    parts_l.append(_polar(cl, pv + math.pi + off))
+    # (4) exact mirror pairs at any elevation
+    c4, p4 = u(sizes[3]) ** 4, two_pi * u(sizes[3])
+    parts_v.append(_polar(c4, p4))
+    parts_l.append(_polar(c4, p4 + math.pi))
+    # (5) l = −v and l = v, any elevation (a quarter of them grazing)
+    kk = sizes[4]
+    c5 = torch.where(u(kk) < 0.25, 10.0 ** (lo + (hi - lo) * u(kk)), 2.0 * u(kk) - 1.0)
+    v5 = _polar(c5, two_pi * u(kk))
+    parts_v.append(v5)
+    parts_l.append(torch.where((u(kk) < 0.5)[:, None], -v5, v5))
+    # (6) the stress grid's cosines at random azimuths
+    kk = sizes[5]
+    cos = torch.tensor(STRESS_COSINES, dtype=f64)
+    pick = lambda: cos[torch.randint(0, len(cos), (kk,), generator=gen)]  # noqa: E731
+    parts_l.append(_polar(pick(), two_pi * u(kk)))
+    parts_v.append(_polar(pick(), two_pi * u(kk)))
+    l, v = torch.cat(parts_l), torch.cat(parts_v)
+    n = torch.zeros_like(l)
+    n[:, 2] = 1.0
+    turn = u(m) < 0.5
+    rot = _rotation(int(turn.sum()), gen)
+    for x in (n, l, v):
+        x[turn] = (rot @ x[turn].unsqueeze(-1)).squeeze(-1)
+    return tuple(x.to(dtype=dtype, device=device) for x in (n, l, v))
+
+
+def random_params(model: Model, m: int, dtype=torch.float64, device=None, seed: int = 0) -> dict[str, Tensor]:
+    """Random parameters ``[m, channels]`` for ``model``, each channel drawn independently: half uniform
+    over the declared range (log-uniform from 1e-6 to 1e3 above the low end for an unbounded range), a
+    quarter from :func:`stress_values`, a quarter within 10^U(−9, −2) of one of the range's ends."""
+    gen = torch.Generator().manual_seed(seed + 7919)
+    out = {}
+    for spec in model.params:
+        shape = (m, spec.channels)
+        u = torch.rand(shape, generator=gen, dtype=torch.float64)
+        finite = math.isfinite(spec.high)
+        span = (spec.high - spec.low) if finite else 1e3
+        if finite:
+            uni = spec.low + span * torch.rand(shape, generator=gen, dtype=torch.float64)
+        else:
+            uni = spec.low + 10.0 ** (-6.0 + 9.0 * torch.rand(shape, generator=gen, dtype=torch.float64))
+        vals = torch.tensor(stress_values(spec), dtype=torch.float64)
+        picked = vals[torch.randint(0, len(vals), shape, generator=gen)]
+        eps = span * 10.0 ** (-9.0 + 7.0 * torch.rand(shape, generator=gen, dtype=torch.float64))
+        top = spec.high if finite else spec.low + span
+        near = torch.where(torch.rand(shape, generator=gen) < 0.5, spec.low + eps, top - eps)
+        x = torch.where(u < 0.5, uni, torch.where(u < 0.75, picked, near))
+        out[spec.name] = x.clamp(spec.low, top).to(dtype=dtype, device=device)
+    return out
+
+
 @dataclass
 class StabilityReport:
     """What :func:`check_stability` found for one model and dtype."""
@@ -189,3 +294,61 @@ def check_stability(model: Model, dtype=torch.float64, device=None, n_random: in
             dev = (f.detach().double() - f64).abs() / f64.abs().clamp_min(floor)
             report.max_rel_dev_f32 = float(dev[torch.isfinite(dev)].max()) if torch.isfinite(dev).any() else math.inf
     return report
+
+
+@dataclass
+class SampledReport:
+    """What :func:`sampled_stability` found for one model, dtype and set of random samples.
+
+    ``nonfinite_*`` count samples (rows) with at least one non-finite entry; ``negative`` counts samples
+    where f_r < 0 in some channel and ``min_value`` is the most negative f_r (1/sr; 0 if none).
+    """
+
+    model: str
+    dtype: str
+    samples: int = 0
+    nonfinite_value: int = 0
+    nonfinite_grad: int = 0
+    nonfinite_grad_directions: int = 0
+    negative: int = 0
+    min_value: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.nonfinite_value == 0 and self.nonfinite_grad == 0
+
+    def add(self, other: SampledReport) -> SampledReport:
+        """The two reports of disjoint sample sets merged into one."""
+        return SampledReport(
+            self.model, self.dtype, self.samples + other.samples, self.nonfinite_value + other.nonfinite_value,
+            self.nonfinite_grad + other.nonfinite_grad,
+            self.nonfinite_grad_directions + other.nonfinite_grad_directions,
+            self.negative + other.negative, min(self.min_value, other.min_value),
+        )
+
+
+def sampled_stability(model: Model, m: int, dtype=torch.float64, device=None, seed: int = 0) -> SampledReport:
+    """Evaluate ``model.brdf`` and ``model.cosine_brdf`` on ``m`` triples of :func:`edge_vectors` with
+    :func:`random_params`, back-propagate to l, v and every parameter, and count the samples with a
+    non-finite value or gradient and those with a negative value."""
+    n, l, v = edge_vectors(m, dtype=dtype, device=device, seed=seed)
+    params = {k: x.requires_grad_() for k, x in random_params(model, m, dtype=dtype, device=device, seed=seed).items()}
+    l.requires_grad_()
+    v.requires_grad_()
+    g = Angles.from_vectors(n, l, v)
+    f = model.cosine_brdf(g, params)
+    fb = model.brdf(g, params)
+    grads = torch.autograd.grad(f.sum() + fb.sum(), [l, v, *params.values()], allow_unused=True)
+    def bad(x: Tensor | None) -> Tensor:
+        return torch.zeros(m, dtype=torch.bool, device=f.device) if x is None else ~torch.isfinite(x).all(-1)
+
+    bad_dir = bad(grads[0]) | bad(grads[1])
+    bad_grad = bad_dir.clone()
+    for gr in grads[2:]:
+        bad_grad |= bad(gr)
+    with torch.no_grad():
+        neg = ((f < 0) | (fb < 0)).any(-1)
+        fin = fb[torch.isfinite(fb)]
+        low = float(fin.min()) if fin.numel() else 0.0
+    return SampledReport(model.name, str(dtype).replace("torch.", ""), m, int((bad(f) | bad(fb)).sum()),
+                         int(bad_grad.sum()), int(bad_dir.sum()), int(neg.sum()), min(low, 0.0))

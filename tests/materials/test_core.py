@@ -36,6 +36,27 @@ def test_angles_half_vector_at_opposite_directions_is_finite():
     assert torch.isfinite(grad).all()
 
 
+def test_safe_normalize_gradient_of_a_tiny_vector_is_finite_and_exact_in_float32():
+    # the half vector l + v of a grazing mirror pair (n·l = n·v = c) is (0, 0, 2c), tiny; a lobe's derivative
+    # with respect to it can be ~1e20 (a mirror-like D at grazing angles). The backward pass of x·|x|^-1 used to
+    # form x (x·g)|x|^-3: inf in float32 at |x| ≈ 1e-11, although the true (I − u uᵀ) g / |x| is ~1e31.
+    g64 = torch.tensor([1e20, -3e19, 7e19], dtype=torch.float64)
+    for c in (1e-3, 1e-7, 1e-11):
+        x64 = (c * torch.tensor([[0.3, -0.2, 1.0]], dtype=torch.float64)).requires_grad_()
+        x = x64.detach().float().requires_grad_()
+        for xx in (x64, x):
+            (safe_normalize(xx) * g64.to(xx.dtype)).sum().backward()
+            assert torch.isfinite(xx.grad).all()
+        u64 = x64.detach() / x64.detach().norm()
+        expected = (g64 - u64 * (u64 * g64).sum()) / x64.detach().norm()
+        torch.testing.assert_close(x64.grad, expected, rtol=1e-12, atol=0.0)
+        torch.testing.assert_close(x.grad.double(), expected, rtol=1e-5, atol=0.0)
+        torch.testing.assert_close(safe_normalize(x.detach()).double(), u64, rtol=1e-6, atol=1e-7)
+    tiny = torch.zeros(1, 3, requires_grad=True)
+    safe_normalize(tiny).sum().backward()
+    assert torch.equal(tiny.grad, torch.zeros(1, 3))  # the fallback branch has no gradient
+
+
 def test_mirror_cosine():
     n, l, v = _unit(0, 0, 1), _unit(1, 0, 1), _unit(-1, 0, 1)
     assert Angles.from_vectors(n, l, v).rv.item() == pytest.approx(1.0)

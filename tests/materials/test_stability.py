@@ -48,3 +48,42 @@ def test_every_model_float32_matches_float64(name):
     # Relative to the largest value of the lobe over the domain (floor 1e-3 of the max): float32 has
     # ~7 digits; exponents up to 2^16 amplify the cosine's rounding by s·ε ≈ 1e-2 near the peak.
     assert rep.max_rel_dev_f32 < 5e-2, rep
+
+
+def _grazing_mirror_pairs(dtype):
+    """Exact and nearly exact mirror pairs at n·l, n·v = 1e-12 … 1e-1, and l = −v, in a turned frame."""
+    c = torch.logspace(-12, -1, 23, dtype=torch.float64)
+    phi = torch.tensor([0.1, 1.3, 2.9, 4.4], dtype=torch.float64)
+    c, phi = (x.reshape(-1) for x in torch.meshgrid(c, phi, indexing="ij"))
+    polar = lambda cc, pp: torch.stack([torch.sqrt(1 - cc * cc) * torch.cos(pp),  # noqa: E731
+                                        torch.sqrt(1 - cc * cc) * torch.sin(pp), cc], -1)
+    v = polar(c, phi)
+    l = torch.cat([polar(c, phi + math.pi), polar(c, phi + math.pi + 1e-6), polar(c.flip(0), phi + math.pi), -v])
+    v = torch.cat([v, v, v, v])
+    rot = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64))[0]
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand_as(v)
+    return [torch.cat([x, x @ rot.T]).to(dtype) for x in (n, l, v)]
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_float32_gradients_are_finite_at_grazing_mirror_pairs(name):
+    # where the mirror-like lobes (s up to 2^16) divide by grazing cosines: the half vector is tiny there
+    model = materials.get(name)
+    n, l, v = _grazing_mirror_pairs(torch.float32)
+    params = {k: x.requires_grad_() for k, x in validation.stress_params(model, len(n), torch.float32).items()}
+    l.requires_grad_()
+    v.requires_grad_()
+    g = materials.Angles.from_vectors(n, l, v)
+    out = model.brdf(g, params).sum() + model.cosine_brdf(g, params).sum()
+    grads = torch.autograd.grad(out, [l, v, *params.values()], allow_unused=True)
+    assert torch.isfinite(out)
+    for gr in grads:
+        assert gr is None or torch.isfinite(gr).all()
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_random_and_edge_samples_are_finite(name):
+    # the cheap version of `python scripts/stress.py sampled` (docs/stability.md): a few thousand samples
+    for dtype in (torch.float64, torch.float32):
+        rep = validation.sampled_stability(materials.get(name), 3000, dtype=dtype, seed=11)
+        assert rep.ok, rep
