@@ -112,7 +112,7 @@ def gotanda_normalization(shininess: Tensor, normalization: str = "fit") -> Tens
 
 def _lobe_no_max(g: Angles, f0: Tensor, shininess: Tensor, normalization: str, fresnel: str) -> Tensor:
     """N(s) · F(f0, l·h) · (n·h)^s, un-masked (shared by the BRDF and its cosine form)."""
-    f = _fresnel.FRESNEL[fresnel](f0, g.lh)
+    f = _fresnel.FRESNEL[fresnel](f0, g.fresnel_cos)
     return gotanda_normalization(shininess, normalization) * f * guarded_pow(g.nh, shininess)
 
 
@@ -196,11 +196,14 @@ class _GotandaBase(Model):
         fn = gotanda_blinn_phong_cosine if cosine else gotanda_blinn_phong
         return fn(g, p["f0"], s, self.normalization, self.fresnel)
 
-    def _env_specular(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
+    def _env_specular(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor],
+                      fresnel_cos: Tensor | None = None) -> Tensor:
         """IBL specular: F(f0, n·v) · L(r). A mirror-reflection stand-in for Gotanda's AmbientBRDF
-        (the lobe's own albedo loss at low shininess is ignored; coarse, as in 2012 eq 7)."""
+        (the lobe's own albedo loss at low shininess is ignored; coarse, as in 2012 eq 7). ``fresnel_cos``
+        replaces n·v as the Fresnel factor's cosine (a coat above: the angle refracted into it)."""
         nv = (n * v).sum(-1, keepdim=True)
-        f = _fresnel.FRESNEL[self.fresnel](p["f0"], nv.clamp(0.0, 1.0))
+        fc = nv if fresnel_cos is None else fresnel_cos
+        f = _fresnel.FRESNEL[self.fresnel](p["f0"], fc.clamp(0.0, 1.0))
         out = f * mirror_radiance(env, n, v)
         return torch.where(nv > 0, out, torch.zeros_like(out))
 
@@ -246,16 +249,17 @@ class Gotanda2010(_GotandaBase):
         return self._diffuse(g, p) * g.nl.clamp_min(0.0) + self._spec(g, p, cosine=True)
 
     def environment_split(
-        self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]
+        self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor], fresnel_cos: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """(specular, diffuse) radiance ``[..., 3]`` toward v: F(f0, n·v) L(r) and
-        albedo (1 − f0)/π · E(n). Used by the layered model (Gotanda 2012 eq 7, 9)."""
+        albedo (1 − f0)/π · E(n). Used by the layered model (Gotanda 2012 eq 7, 9), which passes the
+        refracted cosine as ``fresnel_cos`` (the Fresnel factor's cosine, default n·v)."""
         if not isinstance(env, (HemisphereLight, SHLight)):
             raise NotImplementedError(f"no environment response for {type(env).__name__}")
         nv = (n * v).sum(-1, keepdim=True)
         diff = p["albedo"] * (1.0 - p["f0"]) * INV_PI * env.irradiance(n)
         diff = torch.where(nv > 0, diff, torch.zeros_like(diff))
-        return self._env_specular(env, n, v, p), diff
+        return self._env_specular(env, n, v, p, fresnel_cos), diff
 
     def environment(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         s, d = self.environment_split(env, n, v, p)

@@ -70,6 +70,11 @@ class Angles:
         nh: n·h, cosine of the half-vector angle θ_h.
         lh: l·h = v·h, cosine of half the phase angle (Fresnel's angle on a microfacet).
         lv: l·v, cosine of the phase angle (the papers' E·L).
+        fresnel_lh: the cosine at which a lobe evaluates its specular Fresnel factor, or ``None`` for
+            :attr:`lh` (every lobe reads it through :attr:`fresnel_cos`). A layer above the surface sets it:
+            under Gotanda's coat the bottom's Fresnel is taken at the angle refracted into the coat (2012
+            eq 4, :meth:`materials.layered.GotandaLayered.bottom_angles`) while the rest of the bottom lobe
+            keeps the unrefracted cosines.
     """
 
     nl: Tensor
@@ -77,6 +82,7 @@ class Angles:
     nh: Tensor
     lh: Tensor
     lv: Tensor
+    fresnel_lh: Tensor | None = None
 
     @staticmethod
     def from_vectors(n: Tensor, l: Tensor, v: Tensor) -> Angles:
@@ -118,6 +124,15 @@ class Angles:
         return Angles(nl=c(nl), nv=c(nv), nh=c(nh), lh=c(lh), lv=c(lv))
 
     @property
+    def fresnel_cos(self) -> Tensor:
+        """The cosine of the specular Fresnel factor: :attr:`fresnel_lh` if set, else l·h, ``[..., 1]``."""
+        return self.lh if self.fresnel_lh is None else self.fresnel_lh
+
+    def with_fresnel_cos(self, cos: Tensor) -> Angles:
+        """These angles with the specular Fresnel factor evaluated at ``cos`` ``[..., 1]`` instead of l·h."""
+        return Angles(self.nl, self.nv, self.nh, self.lh, self.lv, cos)
+
+    @property
     def front(self) -> Tensor:
         """Boolean ``[..., 1]``: both light and viewer strictly above the surface."""
         return (self.nl > 0) & (self.nv > 0)
@@ -133,11 +148,14 @@ class Angles:
 
     def to(self, *args, **kwargs) -> Angles:
         """Move/cast every field (``Tensor.to`` semantics)."""
-        return Angles(*(getattr(self, f).to(*args, **kwargs) for f in ("nl", "nv", "nh", "lh", "lv")))
+        return Angles(*(None if (x := getattr(self, f)) is None else x.to(*args, **kwargs) for f in _FIELDS))
 
     def __getitem__(self, index) -> Angles:
         """Index the leading dimensions of every field alike (e.g. a boolean mask of samples)."""
-        return Angles(*(getattr(self, f)[index] for f in ("nl", "nv", "nh", "lh", "lv")))
+        return Angles(*(None if (x := getattr(self, f)) is None else x[index] for f in _FIELDS))
+
+
+_FIELDS = ("nl", "nv", "nh", "lh", "lv", "fresnel_lh")
 
 
 def clamp_cos(x: Tensor, eps: float = 1e-6) -> Tensor:

@@ -18,14 +18,23 @@ Point and directional lights (one light direction l, viewer v)::
   1 − F0(1/n1) = 1 − F0(n1); the bottom's own Fresnel is made constant too when its model takes a
   ``fresnel`` option (it is built with ``fresnel="none"``, i.e. F = F0(n2/n1)).
 - ``F(n2/n1)``, the middle factor of eq 4, is the bottom's *own* Fresnel evaluated with the bottom
-  interface seen from inside the coat: a bottom characterised by f0 has, against air,
-  n2 = (1 + √f0)/(1 − √f0) (f0 = ((n2 − 1)/(n2 + 1))²), so against the coat its normal-incidence
-  reflectance is f0_rel = ((n2 − n1)/(n2 + n1))², computed in the overflow-free form
+  interface seen from inside the coat, at the angle refracted into the coat: light reaches the
+  bottom at θ_t = asin(sin θ / n1), so the bottom lobe gets its Fresnel cosine (l·h, the angle its
+  Fresnel factor uses; :attr:`materials.Angles.fresnel_cos`) replaced by cos θ_t = √(1 − (1 − (l·h)²)/n1²)
+  (:meth:`GotandaLayered.bottom_angles`; at a mirror pair l·h = n·l, so this is exactly eq 4's angle).
+  This is the reading under which the paper's Figure 1 holds: for n1 = 1.33333 over n2 = 1.5 the
+  product (1 − F(n1, θ)) F(n2/n1, θ_t) (1 − F(1/n1, θ_t)) stays within 0.0012–0.0042 for θ ∈ [0°, 85°] —
+  "almost a flat line" next to the top layer's 0.020 → 0.58 — whereas F(n2/n1) at the unrefracted θ
+  would rise 30-fold, to 0.095 at 80° (tests/materials/test_layered.py). A bottom characterised by f0
+  has, against air, n2 = (1 + √f0)/(1 − √f0) (f0 = ((n2 − 1)/(n2 + 1))²), so against the coat its
+  normal-incidence reflectance is f0_rel = ((n2 − n1)/(n2 + n1))², computed in the overflow-free form
   √f0_rel = |(1 + √f0) − n1 (1 − √f0)| / ((1 + √f0) + n1 (1 − √f0)) (finite at f0 = 1: n2 = ∞ →
-  f0_rel = 1). A bottom with an ``ior`` parameter gets η_rel = n2/n1, or n1/n2 when that is below
-  1 (the same interface's external-reflection curve: the unrefracted angles the bottom is
-  evaluated with would otherwise show a total internal reflection the refracted light never
-  reaches). Bottom models with neither parameter (e.g. Lambert) are used as they are.
+  f0_rel = 1); a Fresnel-from-f0 form then follows the external-reflection curve of that interface even
+  where n2 < n1 (f0_rel alone does not say which side is denser). A bottom with an ``ior`` parameter gets
+  η_rel = n2/n1 exactly, also below 1: at the refracted angle sin θ_t ≤ 1/n1 ≤ n2/n1 (n2 ≥ 1), so the
+  total internal reflection of η_rel < 1 is never reached. The rest of the bottom lobe (its D, G and any
+  diffuse Fresnel such as Gotanda 2014 eq 6) keeps the unrefracted cosines. Bottom models with neither
+  parameter (e.g. Lambert) are used as they are.
 - ``A(l, v)``: absorption in the coat. ``absorption="exact"``: Bouguer-Lambert-Beer (eq 2),
   A = exp(−α d (1/cos θ_i' + 1/cos θ_r')), θ' refracted by Snell through coat_ior
   (cos θ' = √(1 − (1 − cos²θ)/n1²)), map value ``absorption`` = α·d. ``absorption="linear"``
@@ -46,7 +55,8 @@ specular and diffuse when the bottom model offers ``environment_split`` (Gotanda
 Nielsen models do), and each part is attenuated by its own absorption factor:
 
 - specular (eq 6-7, mirror: n·l = n·v): T_in(n·v) T_out(n·v) · max(0, 1 − 2α'/n·v)
-  (exact: exp(−2 α d / cos θ_r'));
+  (exact: exp(−2 α d / cos θ_r')), the bottom's Fresnel again at the refracted angle (eq 7's F_bottom
+  is eq 4 at N·E);
 - diffuse (eq 8-9): T̄_in T_out(n·v) · max(0, 1 − α'(2 + 1/n·v)) (exact: exp(−αd/cos θ_r') times the
   cosine-weighted mean of exp(−αd/cos θ_i') over the hemisphere, 16-point Gauss-Legendre), where
   T̄_in = 1 − 2∫F(n1, μ) μ dμ is the cosine-weighted mean entry transmittance.
@@ -167,9 +177,12 @@ def relative_f0(f0: Tensor, coat_ior: Tensor) -> Tensor:
 
 
 def relative_ior(ior: Tensor, coat_ior: Tensor) -> Tensor:
-    """η_rel = n2/n1, or n1/n2 when n2 < n1 (external-reflection side of the same interface)."""
-    q = ior / coat_ior
-    return torch.where(q >= 1.0, q, 1.0 / q)
+    """η_rel = n2/n1 of the bottom interface seen from inside the coat (below 1 when the coat is denser).
+
+    With the Fresnel factor at the refracted angle (sin θ_t ≤ 1/n1) and n2 ≥ 1, sin θ_t ≤ η_rel, so
+    η_rel < 1 never reaches total internal reflection.
+    """
+    return ior / coat_ior
 
 
 def _hemispherical_mean(fn, dtype, device) -> Tensor:
@@ -241,6 +254,11 @@ class GotandaLayered(Model):
         self._coat_cache = None
 
     # -- pieces ---------------------------------------------------------------------------------
+    def bottom_angles(self, g: Angles, p: Mapping[str, Tensor]) -> Angles:
+        """``g`` with the bottom's specular Fresnel cosine refracted into the coat (eq 4's F(n2/n1) at θ_t):
+        cos θ_t = √(1 − (1 − c²)/n1²) for the cosine c the bottom's Fresnel would use (l·h)."""
+        return g.with_fresnel_cos(refracted_cos(g.fresnel_cos, p["coat_ior"]))
+
     def bottom_params(self, p: Mapping[str, Tensor]) -> dict[str, Tensor]:
         """The bottom's parameters as seen from inside the coat (f0 → f0_rel, ior → η_rel)."""
         q = dict(p)
@@ -304,8 +322,8 @@ class GotandaLayered(Model):
 
     def _eval(self, g: Angles, p: Mapping[str, Tensor], cosine: bool) -> Tensor:
         top, trans = self.coat_terms(g, p, cosine)
-        pb = self.bottom_params(p)
-        bot = self.bottom.cosine_brdf(g, pb) if cosine else self.bottom.brdf(g, pb)
+        pb, gb = self.bottom_params(p), self.bottom_angles(g, p)
+        bot = self.bottom.cosine_brdf(gb, pb) if cosine else self.bottom.brdf(gb, pb)
         val = top + trans * self.attenuation(g, p) * bot
         return torch.where(g.front, val, torch.zeros_like(val))
 
@@ -349,7 +367,7 @@ class GotandaLayered(Model):
         pb = self.bottom_params(p)
         split = getattr(self.bottom, "environment_split", None)
         if split is not None:
-            spec_b, diff_b = split(env, n, v, pb)
+            spec_b, diff_b = split(env, n, v, pb, fresnel_cos=refracted_cos(nv, n1))
             bottom = t_in_spec * t_out * a_spec * spec_b + t_in_diff * t_out * a_diff * diff_b
         else:
             bottom = t_in_diff * t_out * a_diff * self.bottom.environment(env, n, v, pb)

@@ -347,7 +347,7 @@ def microfacet_specular(g: Angles, f0: Tensor, alpha, D: str = "ggx", G: str = "
     _choice(D, DISTRIBUTIONS, "normal distribution D")
     fres = _fresnel(F)
     vis = visibility_term(G, g, alpha, distribution=D)
-    f = ndf(D, g.nh, alpha) * vis * fres(f0, g.lh)
+    f = ndf(D, g.nh, alpha) * vis * fres(f0, g.fresnel_cos)
     return torch.where(g.front, f, torch.zeros_like(f))
 
 

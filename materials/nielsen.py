@@ -57,7 +57,7 @@ def _masked(g: Angles, val: Tensor) -> Tensor:
 def nielsen_fresnel(g: Angles, ior: Tensor) -> Tensor:
     """R_F(l·h, η): exact dielectric Fresnel at the microfacet angle, ``[..., 1]``."""
     _check(g, "nielsen_fresnel", ior=ior)
-    return _fresnel.fresnel_dielectric(ior, g.lh)
+    return _fresnel.fresnel_dielectric(ior, g.fresnel_cos)
 
 
 def modified_phong(g: Angles, rho_s: Tensor, shininess: Tensor) -> Tensor:
@@ -126,7 +126,7 @@ class _Nielsen(Model):
         return diffuse + spec
 
     def environment_split(
-        self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]
+        self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor], fresnel_cos: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """(specular, diffuse) radiance toward v from an environment, ``[..., 3]`` each.
 
@@ -134,7 +134,8 @@ class _Nielsen(Model):
         ρ_s (or k_s-derived albedo 1) · R_F(n·v, η) · L(r); the lobes' own normalisations make their
         albedo ≈ ρ_s at normal incidence for eq 1-2. Coarse (as Gotanda 2012 eq 7); for eq 3 the
         lobe's albedo depends on s and α and is not modelled: we use k_s · 2π/(s + 2) (the Phong
-        lobe's integral) as its albedo.
+        lobe's integral) as its albedo. ``fresnel_cos`` replaces n·v as R_F's cosine (the layered model
+        passes the angle refracted into its coat, Gotanda 2012 eq 4/7).
         """
         from .blinn_phong import mirror_radiance
 
@@ -147,7 +148,8 @@ class _Nielsen(Model):
             s = roughness_to_shininess(p["roughness"])
             scale = scale * (2.0 * math.pi) / (s + 2.0)
         if self.fresnel:
-            scale = scale * _fresnel.fresnel_dielectric(p["ior"], nv.clamp(0.0, 1.0))
+            fc = nv if fresnel_cos is None else fresnel_cos
+            scale = scale * _fresnel.fresnel_dielectric(p["ior"], fc.clamp(0.0, 1.0))
         spec = scale * mirror_radiance(env, n, v)
         return torch.where(nv > 0, spec, torch.zeros_like(spec)), diff
 

@@ -137,7 +137,7 @@ def schuler_cook_torrance_simplified(g: Angles, f0: Tensor, e: Tensor) -> Tensor
     """
     _check(g, f0, "schuler_cook_torrance_simplified")
     vis = visibility_term("cook-torrance", g, torch.ones_like(g.nl))
-    f = schuler_distribution(g.nh, e) * fresnel_schuler(f0, g.lh) * vis
+    f = schuler_distribution(g.nh, e) * fresnel_schuler(f0, g.fresnel_cos) * vis
     return torch.where(g.front, f, torch.zeros_like(f))
 
 
@@ -146,7 +146,7 @@ def schuler_kelemen_szirmay_kalos(g: Angles, f0: Tensor, e: Tensor) -> Tensor:
     :func:`schuler_cook_torrance_simplified` (appendix: I = Σ D F/(4 (L·H)²) N·L E), ``[..., C]``."""
     _check(g, f0, "schuler_kelemen_szirmay_kalos")
     lh = _lh(g)
-    f = schuler_distribution(g.nh, e) * fresnel_schuler(f0, g.lh) / (4.0 * lh * lh)
+    f = schuler_distribution(g.nh, e) * fresnel_schuler(f0, g.fresnel_cos) / (4.0 * lh * lh)
     return torch.where(g.front, f, torch.zeros_like(f))
 
 

@@ -103,8 +103,79 @@ def test_relative_f0_and_ior():
         n2 = (1 + math.sqrt(x)) / (1 - math.sqrt(x))
         assert relative_f0(torch.tensor(x, dtype=D64), torch.tensor(n1, dtype=D64)).item() == pytest.approx(
             ((n2 - n1) / (n2 + n1)) ** 2, rel=1e-12)
-    assert relative_ior(torch.tensor(1.2), torch.tensor(1.5)).item() == pytest.approx(1.25)
+    # n2/n1 also below 1: at the refracted angle (sin θ_t ≤ 1/n1 ≤ n2/n1) no total internal reflection occurs
+    assert relative_ior(torch.tensor(1.2), torch.tensor(1.5)).item() == pytest.approx(0.8)
     assert relative_ior(torch.tensor(2.4), torch.tensor(1.5)).item() == pytest.approx(1.6)
+
+
+def test_golden_oblique_mirror_pair_bottom_fresnel_at_the_refracted_angle():
+    # Gotanda 2012 eq 4 at θ = 60° (n·l = n·v = 1/2, l the mirror of v: h = n, l·h = 1/2), by hand.
+    # Coat η₁ = 1.5: sin θ_t = sin 60°/1.5 = 1/√3, cos θ_t = √(2/3).
+    #   F(1.5, 60°): r_s = (1/2 − 1.5√(2/3))/(1/2 + 1.5√(2/3)), r_p = (1.5/2 − √(2/3))/(1.5/2 + √(2/3)).
+    # Bottom gotanda2010, f0 = 0.09 → f0_rel = (0.25/2.35)²; its Schlick Fresnel at cos θ_t (not at 1/2):
+    #   F_b = f0_rel + (1 − f0_rel)(1 − √(2/3))⁵; bottom f = albedo(1 − f0_rel)/π + N(30) F_b / max(n·l, n·v).
+    # Coat r = 0.5 → s = 30 for both lobes; N(30) = 0.0397436·30 + 0.0856832; (n·h)^s = 1.
+    # Linear absorption (eq 3): 1 − 0.1 (2 + 2) = 0.6.
+    m = materials.get("gotanda2012-layered")
+    ct = math.sqrt(2.0 / 3.0)
+    rs = (0.5 - 1.5 * ct) / (0.5 + 1.5 * ct)
+    rp = (0.75 - ct) / (0.75 + ct)
+    f_coat = 0.5 * (rs * rs + rp * rp)
+    nrm = 0.0397436 * 30 + 0.0856832
+    f0r = (0.25 / 2.35) ** 2
+    f_b = f0r + (1 - f0r) * (1 - ct) ** 5
+    bottom = 0.6 * (1 - f0r) / PI + nrm * f_b / 0.5
+    expected = nrm * f_coat / 0.5 + (1 - f_coat) ** 2 * 0.6 * bottom
+    p = {"albedo": 0.6, "f0": 0.09, "roughness": 0.5, "absorption": 0.1, "coat_ior": 1.5, "coat_roughness": 0.5}
+    p = {k: torch.tensor([x], dtype=D64) for k, x in p.items()}
+    got = m(N, _vec(0.5, 0.0), _vec(0.5, PI), **p).item()
+    assert got == pytest.approx(expected, rel=1e-10)
+    # the unrefracted reading (F_b at l·h = 1/2) would make the bottom's Fresnel 3.7 times larger here
+    f_b_unrefracted = f0r + (1 - f0r) * 0.5**5
+    assert f_b_unrefracted / f_b == pytest.approx(3.66, abs=0.01)
+
+
+def test_golden_environment_bottom_specular_fresnel_at_the_refracted_angle():
+    # eq 7: F_bottom(n1, n2) is eq 4 at N·E. Uniform environment of irradiance 1 (radiance 1/π everywhere),
+    # n·v = 1/2, η₁ = 1.5, no absorption, albedo 0 (no diffuse path): coat F(1.5, 60°)/π, plus the bottom's mirror
+    # specular T_in T_out F_schlick(f0_rel, cos θ_t)/π with cos θ_t = √(2/3) (values as in the BRDF golden above).
+    m = materials.get("gotanda2012-layered")
+    ct = math.sqrt(2.0 / 3.0)
+    rs = (0.5 - 1.5 * ct) / (0.5 + 1.5 * ct)
+    rp = (0.75 - ct) / (0.75 + ct)
+    f_coat = 0.5 * (rs * rs + rp * rp)
+    f0r = (0.25 / 2.35) ** 2
+    expected = (f_coat + (1 - f_coat) ** 2 * (f0r + (1 - f0r) * (1 - ct) ** 5)) / PI
+    one = torch.ones(3, dtype=D64)
+    uniform = materials.HemisphereLight(one, one, torch.tensor([0.0, 0.0, 1.0], dtype=D64))
+    p = {"albedo": 0.0, "f0": 0.09, "roughness": 0.5, "absorption": 0.0, "coat_ior": 1.5, "coat_roughness": 0.5}
+    p = {k: torch.tensor([[x]], dtype=D64) for k, x in p.items()}
+    got = m.environment(uniform, N.unsqueeze(0), _vec(0.5, 0.3).unsqueeze(0), p)
+    torch.testing.assert_close(got, torch.full((1, 3), expected, dtype=D64), rtol=1e-10, atol=0.0)
+
+
+def test_bottom_fresnel_product_is_almost_flat_as_in_figure_1():
+    # Figure 1: n1 = 1.33333 over n2 = 1.5, F_bottom = (1 − F(n1, θ)) F(n2/n1, θ_t) (1 − F(1/n1, θ_t)) is "almost a
+    # flat line" next to the top layer's F(n1, θ). Read back from the model: a Nielsen eq 2 bottom (ρ_d = 0, ρ_s = 1,
+    # its R_F at η = n2/n1) at mirror pairs (h = n) reflects (s + 8)/(8π) R_F; with no absorption
+    # f − f_coat = T_in T_out (s + 8)/(8π) R_F(n2/n1, θ_t) = F_bottom(θ) (s + 8)/(8π).
+    m = materials.get("gotanda2012-layered", bottom="nielsen-blinn-phong")
+    theta = torch.linspace(0.0, 85.0, 18, dtype=D64) * PI / 180
+    c = torch.cos(theta)[:, None]
+    g = Angles.from_cosines(c, c, 2 * c * c - 1)
+    k = len(theta)
+    p = {"albedo": torch.zeros(k, 3, dtype=D64), "specular": torch.ones(k, 3, dtype=D64),
+         "roughness": torch.full((k, 1), 0.5, dtype=D64), "ior": torch.full((k, 1), 1.5, dtype=D64),
+         "absorption": torch.zeros(k, 3, dtype=D64), "coat_ior": torch.full((k, 1), 1.33333, dtype=D64),
+         "coat_roughness": torch.full((k, 1), 0.5, dtype=D64)}
+    s = 30.0
+    f_bottom = ((m.brdf(g, p) - m.coat_specular(g, p)) / ((s + 8) / (8 * PI)))[:, 0]
+    top = materials.fresnel.fresnel_dielectric(torch.tensor([1.33333], dtype=D64), c)[:, 0]
+    assert top[0] == pytest.approx(0.0204, abs=1e-4) and top[-1] > 0.58
+    assert f_bottom.min() > 0.0011 and f_bottom.max() < 0.0043  # 0.0033 at 0°, 0.0042 at 70°, 0.0012 at 85°
+    # F(n2/n1) at the unrefracted θ would climb 30-fold (0.095 at 80°): not "almost flat"
+    r_unrefracted = materials.fresnel.fresnel_dielectric(torch.tensor([1.5 / 1.33333], dtype=D64), c)[:, 0]
+    assert ((1 - top) ** 2 * r_unrefracted).max() > 0.09
 
 
 def test_eq3_agrees_with_eq2_to_first_order():
