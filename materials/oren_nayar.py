@@ -131,7 +131,7 @@ def _safe_acos(c: Tensor) -> Tensor:
 
 # -- Oren & Nayar 1994 --------------------------------------------------------------------------
 def oren_nayar_full(g: Angles, albedo: Tensor, sigma: Tensor, interreflection: bool = True,
-                    cosine: bool = False) -> Tensor:
+                    cosine: bool = False, clamp: bool = True) -> Tensor:
     """The full Oren-Nayar (1994) rough-diffuse BRDF, with the interreflection term.
 
     Oren & Nayar, "Generalization of Lambert's Reflectance Model", SIGGRAPH 1994 — the functional
@@ -152,12 +152,25 @@ def oren_nayar_full(g: Angles, albedo: Tensor, sigma: Tensor, interreflection: b
     cos α = min(n·l, n·v), cos β = max(n·l, n·v), ``cos(φ_r − φ_i) sin θ_i sin θ_r = cosri``,
     ``tan((α + β)/2) = (sin α + sin β)/(cos α + cos β)``, α and β by a clamped acos.
 
+    Negative as published. In the forward (specular) half, cos(φ_r − φ_i) < 0, C2's (sin α − (2β/π)³)
+    and tan β meet at grazing angles: at α = β = π/2 − ε their product tends to 6/π, so the direct
+    term tends to C1 − (6/π) 0.45 σ²/(σ² + 0.09) at a double-grazing mirror pair — negative for every
+    σ > 0.664 (r > 0.744), −0.164 at σ = 1 (π f/ρ as ρ → 0). The interreflection term is positive
+    there (0.30 ρ at σ = 1) and outweighs it for ρ ≥ 0.55. This is the published functional fit (the
+    same constants and case split in independent implementations), not a misplaced term; the
+    V-cavity radiance it approximates is never negative. Measured over uniform front-facing
+    directions (docs/models-diffuse.md, :func:`materials.validation.negative_extent`): at σ = 1 and
+    ρ → 0, 0.60 % of the pairs; with ρ and r uniform in [0, 1], 0.040 %. ``clamp=True`` (default)
+    returns max(f_r, 0) of the total, as
+    :func:`gotanda_on_improved` does for eq 24; ``clamp=False`` gives the published formula.
+
     Args:
         g: shading cosines ``[..., 1]`` (uses n·l, n·v, l·v).
         albedo: ρ ∈ [0, 1], ``[..., C]``. Enters quadratically through the interreflection term.
         sigma: σ ≥ 0 in radians, ``[..., 1]`` (Oren-Nayar fits were made for σ ≤ 1).
         interreflection: add L_r² (True, the complete model) or return L_r¹ only.
         cosine: return f_r · n·l instead of f_r.
+        clamp: return max(f_r, 0) (default) or the published formula, negative in places.
 
     Returns:
         f_r in 1/sr (or f_r·n·l), ``[..., C]``; 0 unless n·l > 0 and n·v > 0. Reciprocal.
@@ -193,6 +206,8 @@ def oren_nayar_full(g: Angles, albedo: Tensor, sigma: Tensor, interreflection: b
     if interreflection:
         inter = 0.17 * s2 / (s2 + 0.13) * (1.0 - cos_phi * two_beta_pi.square()) * w
         out = out + albedo.square() * INV_PI * inter
+    if clamp:
+        out = out.clamp_min(0.0)
     return _finish(g, out, albedo)
 
 
@@ -438,17 +453,25 @@ def _check_choice(model: str, option: str, value, valid) -> None:
 class OrenNayar(Model):
     """Full Oren-Nayar 1994 (:func:`oren_nayar_full`); ``interreflection=False`` drops L_r².
 
+    Options: ``interreflection`` (True/False); ``clamp`` (True: max(f_r, 0), the default; False: the
+    published formula, which is negative at grazing forward-scattering pairs for σ > 0.664 and dark
+    albedo — see :func:`oren_nayar_full`).
+
     Parameters: albedo, roughness (σ = roughness_to_sigma(r)). With interreflection albedo is not
-    linear (ρ² term). Cost: two acos, a few sin/sqrt — the most expensive closed form here.
+    linear (ρ² term); without it the clamp keeps it linear (max(ρ d, 0) = ρ max(d, 0) for ρ ≥ 0).
+    Cost: two acos, a few sin/sqrt — the most expensive closed form here.
     """
 
-    def __init__(self, interreflection: bool = True):
+    def __init__(self, interreflection: bool = True, clamp: bool = True):
         _check_choice("oren-nayar", "interreflection", interreflection, (True, False))
+        _check_choice("oren-nayar", "clamp", clamp, (True, False))
         self.interreflection = interreflection
+        self.clamp = clamp
         self.params = (_ALBEDO_NONLINEAR if interreflection else ALBEDO, ROUGHNESS)
 
     def _eval(self, g, p, cosine):
-        return oren_nayar_full(g, p["albedo"], roughness_to_sigma(p["roughness"]), self.interreflection, cosine)
+        return oren_nayar_full(g, p["albedo"], roughness_to_sigma(p["roughness"]), self.interreflection, cosine,
+                               self.clamp)
 
     def brdf(self, g, p):
         return self._eval(g, p, False)
@@ -512,22 +535,25 @@ class _SHMixin:
 class GotandaONImproved(_SHMixin, Model):
     """Gotanda 2012 eq 24/25 (:func:`gotanda_on_improved`), s = roughness_to_shininess(r).
 
-    Options: ``form`` ("eq25" default, "eq24" — clamped at 0, see the lobe), ``sh_dc`` ("eq27"
-    default or "eq28") for :meth:`environment` with an :class:`SHLight`.
+    Options: ``form`` ("eq25" default, "eq24"), ``clamp`` (True: max(f_r, 0), the default; False: the
+    printed formula — eq 24 goes negative for backward grazing light, see the lobe; eq 25 never does),
+    ``sh_dc`` ("eq27" default or "eq28") for :meth:`environment` with an :class:`SHLight`.
     """
 
     params = (ALBEDO, ROUGHNESS)
 
-    def __init__(self, form: str = "eq25", sh_dc: str = "eq27"):
+    def __init__(self, form: str = "eq25", sh_dc: str = "eq27", clamp: bool = True):
         _check_choice("gotanda-on-improved", "form", form, IMPROVED_FORMS)
         _check_choice("gotanda-on-improved", "sh_dc", sh_dc, SH_DC_FORMS)
-        self.form, self.sh_dc = form, sh_dc
+        _check_choice("gotanda-on-improved", "clamp", clamp, (True, False))
+        self.form, self.sh_dc, self.clamp = form, sh_dc, clamp
 
     def brdf(self, g, p):
-        return gotanda_on_improved(g, p["albedo"], roughness_to_shininess(p["roughness"]), self.form)
+        return gotanda_on_improved(g, p["albedo"], roughness_to_shininess(p["roughness"]), self.form, clamp=self.clamp)
 
     def cosine_brdf(self, g, p):
-        return gotanda_on_improved(g, p["albedo"], roughness_to_shininess(p["roughness"]), self.form, cosine=True)
+        return gotanda_on_improved(g, p["albedo"], roughness_to_shininess(p["roughness"]), self.form, cosine=True,
+                                   clamp=self.clamp)
 
 
 @register("gotanda2014-on", "Gotanda 2014 eq 5: improved Oren-Nayar in σ (0.65 constant), SH lighting eq 27-29")
@@ -552,12 +578,21 @@ class Gotanda2014ON(_SHMixin, Model):
 
 @register("gotanda2014-on-fresnel", "Gotanda 2014 eq 7: improved Oren-Nayar with diffuse Fresnel (eq 6)")
 class Gotanda2014ONFresnel(Model):
-    """Gotanda 2014 eq 6-7 (:func:`gotanda2014_on_fresnel`). Parameters: albedo, roughness (σ), f0."""
+    """Gotanda 2014 eq 6-7 (:func:`gotanda2014_on_fresnel`). Parameters: albedo, roughness (σ), f0.
+
+    Option ``clamp``: True (default) returns max(f_r, 0); False the printed eq 7, negative for backward
+    grazing light (e.g. θ_i = 85°, θ_r = 60°, φ = 180°, σ = 1, f0 = 0.04: π f/ρ = −0.103).
+    """
 
     params = (ALBEDO, ROUGHNESS, F0)
 
+    def __init__(self, clamp: bool = True):
+        _check_choice("gotanda2014-on-fresnel", "clamp", clamp, (True, False))
+        self.clamp = clamp
+
     def brdf(self, g, p):
-        return gotanda2014_on_fresnel(g, p["albedo"], roughness_to_sigma(p["roughness"]), p["f0"])
+        return gotanda2014_on_fresnel(g, p["albedo"], roughness_to_sigma(p["roughness"]), p["f0"], clamp=self.clamp)
 
     def cosine_brdf(self, g, p):
-        return gotanda2014_on_fresnel(g, p["albedo"], roughness_to_sigma(p["roughness"]), p["f0"], cosine=True)
+        return gotanda2014_on_fresnel(g, p["albedo"], roughness_to_sigma(p["roughness"]), p["f0"], cosine=True,
+                                      clamp=self.clamp)

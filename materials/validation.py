@@ -352,3 +352,45 @@ def sampled_stability(model: Model, m: int, dtype=torch.float64, device=None, se
         low = float(fin.min()) if fin.numel() else 0.0
     return SampledReport(model.name, str(dtype).replace("torch.", ""), m, int((bad(f) | bad(fb)).sum()),
                          int(bad_grad.sum()), int(bad_dir.sum()), int(neg.sum()), min(low, 0.0))
+
+
+def front_uniform_angles(m: int, dtype=torch.float64, seed: int = 0) -> Angles:
+    """``m`` (l, v) pairs, each uniform in solid angle over the front hemisphere of n = +z, as :class:`Angles`."""
+    gen = torch.Generator().manual_seed(seed)
+    c = torch.rand(2, m, generator=gen, dtype=torch.float64)
+    phi = 2.0 * math.pi * torch.rand(2, m, generator=gen, dtype=torch.float64)
+    l, v = _polar(c[0], phi[0]), _polar(c[1], phi[1])
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    return Angles.from_vectors(n, l, v).to(dtype)
+
+
+def negative_extent(model: Model, m: int = 4_000_000, seed: int = 0, chunk: int = 1_000_000,
+                    **fixed: float) -> dict[str, float]:
+    """How often and how far ``model.brdf`` goes below 0 over front-facing directions (float64).
+
+    Pairs from :func:`front_uniform_angles`; every parameter uniform over its range (an unbounded one
+    over [low, low + 1]) unless given in ``fixed`` (one value for every channel). Returns the fraction
+    of negative pairs (any channel), the most negative π f_r and, for models with an albedo, the most
+    negative π f_r / ρ among them.
+    """
+    neg, low, low_rel = 0, 0.0, 0.0
+    gen = torch.Generator().manual_seed(seed + 1)
+    for k, start in enumerate(range(0, m, chunk)):
+        size = min(chunk, m - start)
+        g = front_uniform_angles(size, seed=seed * 1_000_003 + k)
+        p = {}
+        for s in model.params:
+            if s.name in fixed:
+                p[s.name] = torch.full((1, s.channels), float(fixed[s.name]), dtype=torch.float64)
+            else:
+                top = s.high if math.isfinite(s.high) else s.low + 1.0
+                p[s.name] = s.low + (top - s.low) * torch.rand(size, s.channels, generator=gen, dtype=torch.float64)
+        f = math.pi * model.brdf(g, p)
+        bad = f < 0
+        neg += int(bad.any(-1).sum())
+        if bad.any():
+            low = min(low, float(f.min()))
+            if "albedo" in p:
+                rho = p["albedo"].expand_as(f)
+                low_rel = min(low_rel, float((f[bad] / rho[bad]).min()))
+    return {"negative_fraction": neg / m, "min_pi_f": low, "min_pi_f_over_albedo": low_rel}

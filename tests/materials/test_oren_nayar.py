@@ -181,6 +181,78 @@ def test_eq24_goes_negative_and_is_clamped():
     assert on.gotanda_on_improved(g, ONE[:1], s, "eq25").item() > 0.0
 
 
+def test_full_model_is_negative_as_published_and_clamped_by_default():
+    """Forward grazing mirror pair n·l = n·v = 0.05, l·v = 2·0.05² − 1 (cos(φ_r − φ_i) = −1), σ = 1:
+    α = β = acos 0.05; C2 tan β = B (sin α − (2β/π)³) tan β with B = 0.45/1.09; C3's weight 1 − |cos φ| = 0.
+    π f = ρ (C1 − C2 tan β) + ρ² 0.17/1.13 (1 + (2β/π)²): negative for dark albedo."""
+    c = 0.05
+    be = math.acos(c)
+    direct = (1 - 0.5 / 1.33) - 0.45 / 1.09 * (math.sin(be) - (2 * be / math.pi) ** 3) * math.tan(be)
+    inter = 0.17 / 1.13 * (1 + (2 * be / math.pi) ** 2)
+    assert direct == pytest.approx(-0.12862, abs=1e-5)
+    g = Angles.from_cosines(torch.tensor([c], dtype=D64), torch.tensor([c], dtype=D64),
+                            torch.tensor([2 * c * c - 1], dtype=D64))
+    sigma = torch.tensor([1.0], dtype=D64)
+    for rho in (0.05, 0.2, 0.4):
+        r = torch.tensor([rho], dtype=D64)
+        raw = on.oren_nayar_full(g, r, sigma, clamp=False).item() * math.pi
+        assert raw == pytest.approx(rho * direct + rho**2 * inter, rel=1e-9)
+        assert raw < 0
+        assert on.oren_nayar_full(g, r, sigma).item() == 0.0
+        assert on.oren_nayar_full(g, r, sigma, cosine=True).item() == 0.0
+    # ρ ≥ 0.55 never goes negative at σ = 1: the interreflection outweighs the direct term
+    assert on.oren_nayar_full(g, torch.tensor([0.6], dtype=D64), sigma, clamp=False).item() > 0
+    # the double-grazing limit: the direct term → C1 − (6/π) B
+    gg = Angles.from_cosines(*(torch.tensor([x], dtype=D64) for x in (1e-6, 1e-6, 2e-12 - 1)))
+    lim = on.oren_nayar_full(gg, ONE[:1], sigma, interreflection=False, clamp=False).item() * math.pi
+    assert lim == pytest.approx((1 - 0.5 / 1.33) - 6 / math.pi * 0.45 / 1.09, abs=1e-5)
+    assert lim == pytest.approx(-0.1644, abs=1e-4)
+
+
+def test_printed_forms_are_model_options():
+    """The unclamped (printed) oren-nayar, 2012 eq 24 and 2014 eq 7 through the registry, at their negative
+    configurations; the defaults clamp at 0."""
+    def at(name, g, **p):
+        out = {}
+        for clamp in (True, False):
+            m = materials.get(name, clamp=clamp) if name != "gotanda-on-improved" else \
+                materials.get(name, form="eq24", clamp=clamp)
+            full = {s.name: torch.tensor([[p.get(s.name, 1.0)]], dtype=D64).expand(1, s.channels) for s in m.params}
+            out[clamp] = m.brdf(g, full)[0, 0].item() * math.pi
+        return out
+
+    grazing = Angles.from_cosines(*(torch.tensor([[x]], dtype=D64) for x in (0.05, 0.05, 2 * 0.05**2 - 1)))
+    r = at("oren-nayar", grazing, albedo=0.05, roughness=1.0)
+    assert r[True] == 0.0 and r[False] == pytest.approx(0.05 * -0.12862 + 0.05**2 * 0.150442 * 1.93750, rel=1e-4)
+    backward = Angles.from_cosines(*(torch.tensor([[x]], dtype=D64) for x in (0.1, 0.1, -0.98)))
+    r = at("gotanda-on-improved", backward, roughness=1.0)  # r = 1 → s = 0: A = 1/2, B = 0.45
+    assert r[True] == 0.0 and r[False] == pytest.approx(0.5 - 0.45 * 0.99 / 0.1, rel=1e-9)
+    g7 = _cfg(math.radians(85), math.radians(60), math.pi)
+    r = at("gotanda2014-on-fresnel", g7, roughness=1.0, f0=0.04)  # r = 1 → σ = 1 (capped)
+    assert r[True] == 0.0 and r[False] == pytest.approx(-0.1027, abs=1e-4)
+    with pytest.raises(ValueError, match=r"\[True, False\]"):
+        materials.get("oren-nayar", clamp="no")
+
+
+def test_negative_extent_measures_the_published_model_only():
+    # the docs' measurement (4·10⁶ pairs: 0.60 %, min π f/ρ −0.160 at r = 1, ρ → 0) on a small sample
+    from materials.validation import negative_extent
+    raw = negative_extent(materials.get("oren-nayar", clamp=False), m=50_000, albedo=1e-9, roughness=1.0)
+    assert 0.003 < raw["negative_fraction"] < 0.01 and -0.165 < raw["min_pi_f_over_albedo"] < -0.12
+    assert negative_extent(materials.get("oren-nayar"), m=50_000)["negative_fraction"] == 0.0
+
+
+@given(nl=st.floats(1e-6, 1.0), nv=st.floats(1e-6, 1.0), t=st.floats(0.0, 1.0), rho=st.floats(0.0, 1.0),
+       r=st.floats(0.0, 1.0))
+def test_full_model_default_is_never_negative(nl, nv, t, rho, r):
+    sl, sv = math.sqrt(1 - nl * nl), math.sqrt(1 - nv * nv)
+    lv = nl * nv + sl * sv * math.cos(math.pi * t)
+    g = Angles.from_cosines(*(torch.tensor([[x]], dtype=D64) for x in (nl, nv, lv)))
+    m = materials.get("oren-nayar")
+    p = {"albedo": torch.full((1, 3), rho, dtype=D64), "roughness": torch.tensor([[r]], dtype=D64)}
+    assert (m.brdf(g, p) >= 0).all() and (m.cosine_brdf(g, p) >= 0).all()
+
+
 #: Directional albedo ∫ f_r (n·l) dω_l at ρ = 1 (quadrature 64 × 128), by σ and θ_v: the models
 #: that gain energy, and by how much (Gotanda 2012 footnote 1). Measured; see docs/models-diffuse.md.
 ENERGY_GAIN = {
