@@ -144,6 +144,30 @@ class Camera:
         x, y = torch.broadcast_tensors(x, y)
         return torch.stack([x, y], -1).reshape(-1, 2)
 
+    def jittered_grid(self, supersample: int, generator: torch.Generator, dtype=None) -> Tensor:
+        """Like :meth:`pixel_grid`, but each of the k×k samples of a pixel lies uniformly at random inside its
+        stratum (a cell of side 1/k) instead of at the stratum's centre: stratified jitter, the pixel sampling of
+        a Monte Carlo renderer with a box filter. Same order and shape ``[H·W·k², 2]``; ``generator`` seeds it."""
+        k = _check_supersample(supersample)
+        dtype = dtype or self.K.dtype
+        grid = self.pixel_grid(k, dtype)
+        if not isinstance(generator, torch.Generator):
+            raise CameraError(f"jittered_grid: generator must be a torch.Generator, got {type(generator).__name__}")
+        u = torch.rand(grid.shape, generator=generator, dtype=dtype) - 0.5
+        return grid + u / k
+
+    def rays_at(self, xy: Tensor, dtype=None) -> tuple[Tensor, Tensor]:
+        """Primary rays through image positions ``xy [M, 2]`` (x, y) in pixel coordinates (pixel centres at
+        integers, OpenCV). Returns origins ``[M, 3]`` (the camera centre) and unit world directions ``[M, 3]``."""
+        if not isinstance(xy, Tensor) or xy.dim() != 2 or xy.shape[-1] != 2:
+            raise CameraError(f"rays_at: xy must be a tensor [M, 2] of pixel coordinates, got "
+                              f"{tuple(xy.shape) if isinstance(xy, Tensor) else type(xy).__name__}")
+        dtype = dtype or self.K.dtype
+        pix = xy.to(dtype)
+        cam = torch.cat([pix, torch.ones_like(pix[:, :1])], -1) @ torch.linalg.inv(self.K.to(dtype)).T
+        d = torch.nn.functional.normalize(cam @ self.R.to(dtype), dim=-1)  # Rᵀ x as row vectors
+        return self.center.to(dtype).expand_as(d), d
+
     def rays(self, supersample: int = 1, dtype=None) -> tuple[Tensor, Tensor]:
         """Primary rays through :meth:`pixel_grid` samples.
 
@@ -152,10 +176,7 @@ class Camera:
             M = H·W·k², ordered as :meth:`pixel_grid`.
         """
         dtype = dtype or self.K.dtype
-        pix = self.pixel_grid(supersample, dtype)
-        cam = torch.cat([pix, torch.ones_like(pix[:, :1])], -1) @ torch.linalg.inv(self.K.to(dtype)).T
-        d = torch.nn.functional.normalize(cam @ self.R.to(dtype), dim=-1)  # Rᵀ x as row vectors
-        return self.center.to(dtype).expand_as(d), d
+        return self.rays_at(self.pixel_grid(supersample, dtype), dtype)
 
     # -- OpenGL ------------------------------------------------------------------------------------
     def to_opengl(self, near: float = 0.01, far: float = 100.0) -> tuple[Tensor, Tensor]:

@@ -34,7 +34,7 @@ from torch import Tensor
 from .camera import Camera, _check_supersample
 from .mesh import Mesh
 
-__all__ = ["GBuffer", "render_gbuffer", "intersect", "intersect_faces"]
+__all__ = ["GBuffer", "render_gbuffer", "render_footprint", "intersect", "intersect_faces"]
 
 
 @dataclass
@@ -192,30 +192,27 @@ def intersect(mesh: Mesh, origins: np.ndarray, directions: np.ndarray) -> dict[s
             "geo_normal": gn * sign, "uv": uv, "view": view, "backface": back}
 
 
-def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1) -> GBuffer:
-    """Ray-cast the G-buffer of ``mesh`` seen by ``camera`` (see module docstring).
+def _check_pixels(pixels, camera: Camera, where: str) -> Tensor:
+    n = camera.height * camera.width
+    if not isinstance(pixels, Tensor) or pixels.dim() != 1 or pixels.dtype not in (torch.int32, torch.int64):
+        raise ValueError(f"{where}: pixels must be a 1-D integer tensor of flat pixel indices y·W + x, got "
+                         f"{getattr(pixels, 'dtype', type(pixels).__name__)} {tuple(getattr(pixels, 'shape', ()))}")
+    if pixels.numel() and (int(pixels.min()) < 0 or int(pixels.max()) >= n):
+        raise ValueError(f"{where}: pixel indices must lie in [0, {n}) for a {camera.width}×{camera.height} camera")
+    return pixels.long()
 
-    Args:
-        mesh: the object (its embree scene is built once and cached on the mesh).
-        camera: an OpenCV camera.
-        supersample: k, casting k×k rays per pixel (1 = pixel centres).
 
-    Returns:
-        A :class:`GBuffer` of float32 (torch default dtype) tensors on the CPU.
-    """
-    if not isinstance(mesh, Mesh):
-        raise TypeError(f"render_gbuffer: mesh must be a renderer.mesh.Mesh, got {type(mesh).__name__}")
-    if not isinstance(camera, Camera):
-        raise TypeError(f"render_gbuffer: camera must be a renderer.camera.Camera, got {type(camera).__name__}")
-    k = _check_supersample(supersample)
-    origins_t, dirs_t = camera.rays(k, dtype=torch.float64)
+def _cast(mesh: Mesh, camera: Camera, xy: Tensor, pixel: Tensor, weight: Tensor, k: int) -> GBuffer:
+    """A :class:`GBuffer` of the rays through image positions ``xy [M, 2]`` (pixel coordinates), each belonging
+    to pixel ``pixel [M]`` with share ``weight [M]`` of it; only hits are kept."""
+    origins_t, dirs_t = camera.rays_at(xy, dtype=torch.float64)
     hit = intersect(mesh, origins_t[:1].numpy(), dirs_t.numpy())
-    ray = hit["ray"]
+    ray = torch.from_numpy(hit["ray"].astype(np.int64))
     dt = torch.get_default_dtype()
     f32 = lambda x: torch.from_numpy(np.ascontiguousarray(x)).to(dt)
     return GBuffer(
-        pixel=torch.from_numpy((ray // (k * k)).astype(np.int64)),
-        weight=torch.full((len(ray),), 1.0 / (k * k), dtype=dt),
+        pixel=pixel[ray],
+        weight=weight[ray].to(dt),
         position=f32(hit["position"]),
         normal=f32(hit["normal"]),
         geo_normal=f32(hit["geo_normal"]),
@@ -228,3 +225,70 @@ def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1) -> GBuffer:
         width=camera.width,
         supersample=k,
     )
+
+
+def _check_inputs(mesh, camera, where: str) -> None:
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"{where}: mesh must be a renderer.mesh.Mesh, got {type(mesh).__name__}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"{where}: camera must be a renderer.camera.Camera, got {type(camera).__name__}")
+
+
+def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1, *, jitter: torch.Generator | None = None,
+                   pixels: Tensor | None = None) -> GBuffer:
+    """Ray-cast the G-buffer of ``mesh`` seen by ``camera`` (see module docstring).
+
+    Args:
+        mesh: the object (its embree scene is built once and cached on the mesh).
+        camera: an OpenCV camera.
+        supersample: k, casting k×k rays per pixel (1 = pixel centres).
+        jitter: a generator → each ray at a uniform random position inside its stratum
+            (:meth:`renderer.camera.Camera.jittered_grid`, how a Monte Carlo renderer integrates a box-filtered
+            pixel); None → at the strata's centres.
+        pixels: optional flat pixel indices ``[M]``: cast only these pixels' rays (to bound memory, render an
+            image in blocks of pixels); None = every pixel.
+
+    Returns:
+        A :class:`GBuffer` of float32 (torch default dtype) tensors on the CPU.
+    """
+    _check_inputs(mesh, camera, "render_gbuffer")
+    k = _check_supersample(supersample)
+    grid = camera.jittered_grid(k, jitter, torch.float64) if jitter is not None else camera.pixel_grid(k, torch.float64)
+    pixel = torch.arange(camera.height * camera.width).repeat_interleave(k * k)
+    if pixels is not None:
+        pixels = _check_pixels(pixels, camera, "render_gbuffer")
+        sel = (pixels[:, None] * (k * k) + torch.arange(k * k)).reshape(-1)
+        grid, pixel = grid[sel], pixel[sel]
+    return _cast(mesh, camera, grid, pixel, torch.full((len(pixel),), 1.0 / (k * k), dtype=torch.float64), k)
+
+
+def render_footprint(mesh: Mesh, camera: Camera, pixels: Tensor, counts: Tensor) -> GBuffer:
+    """The G-buffer of pixel footprints with a sample count chosen per pixel.
+
+    Pixel ``pixels[i]`` (flat index y·W + x) is covered by ``counts[i]``² rays at the centres of a regular
+    ``counts[i] × counts[i]`` grid of strata over its square (the box filter's footprint), each of weight
+    ``1 / counts[i]²``; ``counts[i] = 1`` is the pixel centre. Misses are dropped as in :func:`render_gbuffer`, so
+    a pixel whose weights sum to less than 1 is partly background. ``supersample`` records the largest count.
+    """
+    _check_inputs(mesh, camera, "render_footprint")
+    pixels = _check_pixels(pixels, camera, "render_footprint")
+    counts = torch.as_tensor(counts).long()
+    if counts.shape != pixels.shape or (counts.numel() and (int(counts.min()) < 1 or int(counts.max()) > 16)):
+        raise ValueError(f"render_footprint: counts must hold one integer in [1, 16] per pixel ({tuple(pixels.shape)}),"
+                         f" got {tuple(counts.shape)}")
+    xy, pix, wt = [], [], []
+    W = camera.width
+    for k in torch.unique(counts).tolist():
+        p = pixels[counts == k]
+        off = (torch.arange(k, dtype=torch.float64) + 0.5) / k - 0.5
+        oy, ox = torch.meshgrid(off, off, indexing="ij")
+        o = torch.stack([ox.reshape(-1), oy.reshape(-1)], -1)                       # [k², 2]
+        centre = torch.stack([(p % W).double(), (p // W).double()], -1)              # [m, 2]
+        xy.append((centre[:, None, :] + o[None]).reshape(-1, 2))
+        pix.append(p.repeat_interleave(k * k))
+        wt.append(torch.full((len(p) * k * k,), 1.0 / (k * k), dtype=torch.float64))
+    if not xy:
+        xy, pix, wt = [torch.zeros(0, 2, dtype=torch.float64)], [torch.zeros(0, dtype=torch.long)], \
+            [torch.zeros(0, dtype=torch.float64)]
+    kmax = int(counts.max()) if counts.numel() else 1
+    return _cast(mesh, camera, torch.cat(xy), torch.cat(pix), torch.cat(wt), kmax)

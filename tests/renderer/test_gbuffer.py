@@ -113,3 +113,33 @@ def test_empty_view_and_backfaces():
     assert torch.allclose(g.normal, torch.tensor([0.0, 0.0, -1.0]).expand(len(g), 3))
     with pytest.raises(TypeError, match="Camera"):
         render_gbuffer(m, "camera")
+
+
+def test_footprint_rays_are_the_supersampling_strata():
+    """render_footprint with k × k per pixel casts exactly render_gbuffer(k)'s rays for those pixels, and k = 1
+    is the pixel centre; mixed counts give each pixel weights 1/k² summing to its covered fraction."""
+    from renderer.gbuffer import render_footprint
+
+    m = uv_sphere(segments=32, rings=16)
+    cam = look_at((0.0, -3.0, 0.5), (0.0, 0.0, 0.0), fov_y_deg=40, width=40, height=30)
+    pixels = torch.tensor([15 * 40 + 20, 14 * 40 + 19, 3, 15 * 40 + 21])   # two inside, a corner miss, one inside
+    for k in (1, 3):
+        g = render_footprint(m, cam, pixels, torch.full((4,), k))
+        ref = render_gbuffer(m, cam, k, pixels=pixels)
+        assert torch.equal(g.pixel, ref.pixel) and torch.allclose(g.uv, ref.uv) and torch.allclose(g.weight, ref.weight)
+    g = render_footprint(m, cam, pixels, torch.tensor([1, 2, 4, 3]))
+    cover = torch.zeros(40 * 30, dtype=torch.float64).index_add(0, g.pixel, g.weight.double())
+    assert cover[pixels[[0, 1, 3]]].tolist() == pytest.approx([1.0, 1.0, 1.0])
+    assert cover[3] == 0.0 and len(g) == 1 + 4 + 9
+
+
+def test_jittered_samples_stay_in_their_strata_and_differ_from_the_centres():
+    cam = look_at((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), width=6, height=5)
+    k = 4
+    centres = cam.pixel_grid(k, torch.float64)
+    jit = cam.jittered_grid(k, torch.Generator().manual_seed(1), torch.float64)
+    d = (jit - centres).abs()
+    assert float(d.max()) <= 0.5 / k + 1e-12        # inside the stratum of side 1/k around its centre
+    assert float(d.mean()) > 0.25 * 0.5 / k          # uniform in the stratum: mean |offset| = 1/(4k) per axis
+    again = cam.jittered_grid(k, torch.Generator().manual_seed(1), torch.float64)
+    assert torch.equal(jit, again)
