@@ -24,12 +24,15 @@ Transfer functions (``encode``: linear → file value, ``decode``: file value �
 Writes are atomic: the file is written to a temporary name in the destination folder, flushed
 with ``fsync`` and moved over the destination with :func:`os.replace`, so a reader sees either the
 old file or the complete new one, never a half-written one. Every failure raises
-:class:`ImageIOError` (a ``ValueError``) whose message starts with the file's path.
+:class:`ImageIOError` (a ``ValueError``) whose message starts with the file's path. A new file gets
+the permissions the umask gives a plain ``open`` (:func:`apply_umask`; a replaced file keeps its
+own), not the private ones of the temporary file.
 """
 
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from pathlib import Path
 
@@ -40,7 +43,7 @@ from torch import Tensor
 
 __all__ = [
     "ImageIOError", "ImageNotFoundError", "TRANSFERS", "decode", "encode", "read_exr", "read_image",
-    "read_png", "write_exr", "write_image", "write_png", "atomic_write_bytes",
+    "read_png", "write_exr", "write_image", "write_png", "atomic_write_bytes", "apply_umask", "current_umask",
 ]
 
 #: Names accepted by :func:`encode` / :func:`decode`.
@@ -164,6 +167,48 @@ def _image_array(path: Path, img, what: str) -> np.ndarray:
     return arr
 
 
+def current_umask() -> int:
+    """The process's file-creation mask (from ``/proc/self/status`` where there is one, else set and restored)."""
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def apply_umask(path) -> None:
+    """Give ``path`` — a file, or a folder and everything under it — the permissions a plain ``open`` /
+    ``mkdir`` would: ``0o666`` / ``0o777`` less the umask.
+
+    ``tempfile.mkstemp`` / ``mkdtemp`` create private entries (0600 / 0700); every output written under a
+    temporary name and then renamed into place gets this first, so outputs honour the umask like any file the
+    user writes. Symbolic links are left alone (their targets are not ours).
+    """
+    path = _path(path)
+    mask = current_umask()
+    fmode, dmode = 0o666 & ~mask, 0o777 & ~mask
+    if path.is_symlink():
+        return
+    if not path.is_dir():
+        os.chmod(path, fmode)
+        return
+    os.chmod(path, dmode)
+    for dirpath, dirnames, filenames in os.walk(path):
+        for name in dirnames:
+            p = os.path.join(dirpath, name)
+            if not os.path.islink(p):
+                os.chmod(p, dmode)
+        for name in filenames:
+            p = os.path.join(dirpath, name)
+            if not os.path.islink(p):
+                os.chmod(p, fmode)
+
+
 def atomic_write_bytes(path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (temp file in the same folder, fsync, :func:`os.replace`)."""
     path = _path(path)
@@ -183,12 +228,19 @@ def _atomic(path: Path, writer) -> None:
         writer(tmp)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        try:  # a replaced file keeps its mode; a new one gets the umask's, not mkstemp's private 0600
+            mode = stat.S_IMODE(os.stat(path).st_mode)
+        except OSError:
+            mode = 0o666 & ~current_umask()
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except ImageIOError:
         _unlink(tmp)
         raise
-    except Exception as err:  # OSError, RuntimeError from OpenEXR, cv2.error
+    except BaseException as err:  # OSError, RuntimeError from OpenEXR, cv2.error; an interrupt too
         _unlink(tmp)
+        if not isinstance(err, Exception):
+            raise
         raise ImageIOError(f"{path}: could not be written ({type(err).__name__}: {err})") from err
     try:  # make the rename durable; not every platform can fsync a folder
         dfd = os.open(folder, os.O_RDONLY)

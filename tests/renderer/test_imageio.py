@@ -227,6 +227,32 @@ def test_atomic_write_leaves_no_temp_and_keeps_old_file_on_failure(tmp_path):
         io.write_image(tmp_path / "x.jpg", torch.ones(2, 2, 3))
 
 
+def test_atomic_writes_honour_the_umask_and_keep_a_replaced_files_mode(tmp_path, monkeypatch):
+    # the temporary file is private (mkstemp: 0600); a new image gets what a plain open() would give
+    old = os.umask(0o027)
+    try:
+        io.write_image(tmp_path / "a.exr", torch.ones(2, 2, 3))
+        io.atomic_write_bytes(tmp_path / "b.bin", b"x")
+        (tmp_path / "c.png").write_bytes(b"")
+        os.chmod(tmp_path / "c.png", 0o600)
+        io.write_image(tmp_path / "c.png", torch.ones(2, 2, 3))
+    finally:
+        os.umask(old)
+    modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.iterdir()}
+    assert modes == {"a.exr": 0o640, "b.bin": 0o640, "c.png": 0o600}
+    # an interrupt while writing leaves no temporary file behind
+    import cv2
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cv2, "imencode", lambda *a, **k: (True, np.zeros(4, np.uint8)))
+    monkeypatch.setattr(io.Path, "write_bytes", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        io.write_image(tmp_path / "d.png", torch.ones(2, 2, 3))
+    assert sorted(os.listdir(tmp_path)) == ["a.exr", "b.bin", "c.png"]
+
+
 def test_read_image_dispatch_and_transfer(tmp_path):
     img = torch.tensor([[[0.2, 0.4, 0.6]]])
     io.write_image(tmp_path / "x.png", img, bits=16)
