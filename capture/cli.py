@@ -6,8 +6,11 @@
     shadecap export-atlas RECON_DIR... --out DIR [...]
     shadecap models                                    list every reflectance model
 
-Errors a user can fix (bad dataset, unknown model, existing output folder) print one line naming
-the file/field and exit with status 2; they never print a traceback.
+Errors a user can fix (bad dataset, unknown model, existing output folder, an output that would
+overwrite an input, an unwritable output folder, a full disk) print one line naming the file/field
+and exit with status 2; they never print a traceback. Every output folder is checked before any
+work (``capture.outputs.check_output``) and written atomically. Ctrl-C prints
+``interrupted; nothing written`` and exits with status 130, leaving no temporary folder behind.
 """
 
 from __future__ import annotations
@@ -18,7 +21,9 @@ import sys
 import time
 from pathlib import Path
 
-USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, FileExistsError, KeyError)
+USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, KeyError)
+#: Exit status of a command stopped by Ctrl-C (128 + SIGINT, as shells report it).
+EXIT_INTERRUPTED = 130
 
 
 def _cmd_models(args) -> int:
@@ -36,9 +41,12 @@ def _cmd_models(args) -> int:
 
 
 def _cmd_synth(args) -> int:
+    from capture.outputs import check_output
     from capture.photo import PhotoModel
-    from capture.synthetic import default_scene, make_synthetic, small_scene
+    from capture.synthetic import BUILTIN_MESHES, default_scene, make_synthetic, small_scene
 
+    inputs = {Path(args.mesh): "the mesh file (--mesh)"} if args.mesh and args.mesh not in BUILTIN_MESHES else {}
+    check_output(args.out, inputs, force=args.overwrite, force_flag="--overwrite")
     photo = PhotoModel(exposure=args.exposure, full_well=args.noise, read_noise=args.read_noise,
                        clip=args.clip or args.encoding == "srgb", encoding=args.encoding)
     over = {k: v for k, v in {
@@ -76,7 +84,8 @@ def _add_synth_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--supersample", type=int, help="k×k rays per pixel")
     p.add_argument("--sampling", choices=("bilinear", "nearest"))
     p.add_argument("--seed", type=int)
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", "--force", dest="overwrite", action="store_true",
+                   help="replace an existing dataset folder")
 
 
 def _cmd_reconstruct(args) -> int:
@@ -181,12 +190,15 @@ def _add_export_args(p: argparse.ArgumentParser) -> None:
 
 def _cmd_demo(args) -> int:
     from capture.export import export_atlas_dirs
+    from capture.outputs import check_output
     from capture.reconstruct import reconstruct
     from capture.synthetic import default_scene, make_synthetic, small_scene
 
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise FileExistsError(f"{out} exists; pass --force to replace it or choose another --out")
+    check_output(out.absolute(), force=args.force)  # absolute: '--out .' names a folder the demo writes into
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: is a file; the demo writes its dataset, recon and atlas folders into a folder: "
+                         f"choose another --out")
     cfg = small_scene("ggx-lambert", image_size=128, texture_size=64, n_views=8) if args.small else default_scene()
     t0 = time.perf_counter()
     size = lambda x: f"{x[0]}×{x[1]}" if isinstance(x, (tuple, list)) else f"{x}×{x}"  # noqa: E731
@@ -234,13 +246,48 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _import_eagerly() -> None:
+    """Import trimesh (through ``renderer.mesh``) before any work, and re-raise a Ctrl-C its imports swallowed.
+
+    trimesh imports its optional modules inside ``try: ... except BaseException`` and keeps the exception in a
+    placeholder (``trimesh.exceptions.ExceptionWrapper``): a Ctrl-C that lands there is swallowed and the command
+    goes on. Importing it here, where the interrupt is handled, and looking for such a placeholder makes that
+    Ctrl-C stop the command like any other.
+    """
+    from trimesh.exceptions import ExceptionWrapper
+
+    import renderer.mesh  # noqa: F401  (imports trimesh)
+
+    for name, module in list(sys.modules.items()):
+        if name != "trimesh" and not name.startswith("trimesh."):
+            continue
+        for value in list(vars(module).values()):
+            if type(value) is ExceptionWrapper:
+                kind = object.__getattribute__(value, "exception")[0]
+                if isinstance(kind, type) and issubclass(kind, KeyboardInterrupt):
+                    raise KeyboardInterrupt
+
+
+def _error_text(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and not isinstance(exc, ValueError):
+        from capture.outputs import os_error_message
+
+        return os_error_message(exc)
+    return " ".join(str(exc).split("\n")) if str(exc) else type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        if args.command != "models":
+            _import_eagerly()
         return args.func(args)
     except USER_ERRORS as exc:
-        print(f"shadecap {args.command}: error: {exc}", file=sys.stderr)
+        print(f"shadecap {args.command}: error: {_error_text(exc)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"\nshadecap {args.command}: interrupted; nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -31,8 +31,6 @@ import json
 import math
 import numbers
 import os
-import shutil
-import tempfile
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -49,9 +47,11 @@ from renderer.imageio import ImageIOError, decode, read_exr, read_png, write_exr
 from renderer.lights import LightError, light_from_dict, light_to_dict
 from renderer.mesh import Mesh, MeshError, load_mesh, save_mesh
 
+from .outputs import atomic_folder, check_output, jsonable
+
 __all__ = [
     "FORMAT", "VERSION", "ENCODINGS", "DatasetError", "DatasetWarning", "View", "GroundTruth", "Photo", "Dataset",
-    "load_dataset", "write_dataset", "model_from_spec", "model_spec", "camera_sees_mesh",
+    "load_dataset", "write_dataset", "model_from_spec", "model_spec", "camera_sees_mesh", "dataset_root",
 ]
 
 #: The ``format`` string of every shadecap dataset's ``scene.json``.
@@ -414,6 +414,12 @@ def _warn(msgs: list[str], msg: str) -> None:
 # loading
 
 
+def dataset_root(path) -> Path:
+    """The dataset folder of ``path``: the folder itself, or the folder of its ``scene.json``."""
+    p = Path(path)
+    return p.parent if p.name == SCENE_FILE or p.is_file() else p
+
+
 def load_dataset(path, *, check_images: bool = True) -> Dataset:
     """Load and validate a dataset folder (or its ``scene.json``).
 
@@ -432,8 +438,7 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
     Non-finite pixels are counted and reported as a :class:`DatasetWarning` (kept in the images;
     the observation stage drops them). Unknown fields are ignored with a warning.
     """
-    p = Path(path)
-    root = p.parent if p.name == SCENE_FILE or p.is_file() else p
+    root = dataset_root(path)
     scene = root / SCENE_FILE
     msgs: list[str] = []
     if not root.is_dir():
@@ -489,6 +494,7 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
         mesh = load_mesh(mesh_path)
     except MeshError as exc:
         raise _err(scene, "mesh", str(exc)) from None
+
 
     # views
     entries = _as_list(doc["images"], scene, "images")
@@ -637,24 +643,6 @@ def _load_gt(root: Path, scene: Path, g, msgs: list[str]) -> GroundTruth:
 # writing
 
 
-def _jsonable(x):
-    if isinstance(x, Tensor):
-        return x.detach().cpu().double().tolist()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, Mapping):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, Path):
-        return str(x)
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def _dumps(x, indent: int = 0) -> str:
     """JSON with objects indented and lists of numbers (and of number lists, e.g. K) on one line."""
     pad, inner = " " * indent, " " * (indent + 2)
@@ -670,18 +658,6 @@ def _dumps(x, indent: int = 0) -> str:
             return json.dumps(x, allow_nan=False, separators=(", ", ": "))
         return "[\n" + ",\n".join(inner + _dumps(v, indent + 2) for v in x) + "\n" + pad + "]"
     return json.dumps(x, allow_nan=False)
-
-
-def _fix_permissions(folder: Path) -> None:
-    """mkdtemp/mkstemp create private (0700/0600) entries; give the dataset the usual umask permissions."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(folder, 0o777 & ~umask)
-    for dirpath, dirnames, filenames in os.walk(folder):
-        for d in dirnames:
-            os.chmod(os.path.join(dirpath, d), 0o777 & ~umask)
-        for f in filenames:
-            os.chmod(os.path.join(dirpath, f), 0o666 & ~umask)
 
 
 def write_dataset(
@@ -703,8 +679,11 @@ def write_dataset(
 
     Everything is written into a temporary folder in ``out_dir``'s parent (``.NAME.tmp-*``), then
     (with ``validate``) read back with :func:`load_dataset`, then moved in place with
-    :func:`os.replace`. On any failure the temporary folder is removed and ``out_dir`` is left as
-    it was (absent, or the previous dataset with ``overwrite``).
+    :func:`os.replace` (:func:`capture.outputs.atomic_folder`: files and folders get the umask's
+    permissions, a replaced dataset is removed). ``out_dir`` is checked before anything is written
+    (:func:`capture.outputs.check_output`: it exists only with ``overwrite``, its folder can be
+    written). On any failure the temporary folder is removed and ``out_dir`` is left as it was
+    (absent, or the previous dataset with ``overwrite``).
 
     Args:
         out_dir: destination folder; must not exist unless ``overwrite``.
@@ -732,82 +711,67 @@ def write_dataset(
     if len(views) == 0 or len(views) != len(images):
         raise DatasetError(f"write_dataset: need one image per view and at least one view, got {len(views)} views "
                            f"and {len(images)} images")
-    if out.exists() and not overwrite:
-        raise DatasetError(f"{out}: already exists; choose another folder or pass overwrite=True")
-    parent = out.parent if str(out.parent) else Path(".")
-    if parent.exists() and not parent.is_dir():
-        raise DatasetError(f"{out}: parent {parent} is a file, not a folder; choose another output path")
-    parent.mkdir(parents=True, exist_ok=True)
+    check_output(out, force=overwrite, error=DatasetError, force_flag="overwrite=True (--overwrite)")
     if encoding == "srgb" and saturation is None:
         saturation = (1 << bits) - 1
     ext = ".exr" if encoding == "linear" else ".png"
 
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=parent))
     try:
-        (tmp / IMAGE_DIR).mkdir()
-        save_mesh(mesh, tmp / "mesh.obj")
-        entries = []
-        for i, (view, img) in enumerate(zip(views, images, strict=True)):
-            if not isinstance(view, View):
-                raise DatasetError(f"write_dataset: views[{i}] must be a View, got {type(view).__name__}")
-            rel = view.file or f"{IMAGE_DIR}/{i:03d}{ext}"
-            if Path(rel).suffix.lower() != ext:
-                raise DatasetError(f"write_dataset: views[{i}].file '{rel}' must end in {ext} for encoding "
-                                   f"'{encoding}'")
-            dest = _relative_file(tmp, rel, "write_dataset", f"views[{i}].file")
-            if not isinstance(img, Tensor) or img.dim() not in (2, 3):
-                raise DatasetError(f"write_dataset: images[{i}] must be a tensor [H, W, 3], got "
-                                   f"{getattr(img, 'shape', type(img).__name__)}")
-            if img.shape[0] != view.camera.height or img.shape[1] != view.camera.width:
-                raise DatasetError(f"write_dataset: images[{i}] is {img.shape[1]}×{img.shape[0]} but views[{i}].camera "
-                                   f"is {view.camera.width}×{view.camera.height}")
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            try:
-                if encoding == "linear":
-                    write_exr(dest, img, half=half, allow_nonfinite=True)
-                else:
-                    write_png(dest, torch.nan_to_num(img.detach().cpu(), nan=0.0), bits=bits, transfer="srgb")
-            except ImageIOError as exc:
-                raise DatasetError(f"write_dataset: images[{i}]: {exc}") from None
-            entry = {"file": rel, "camera": view.camera.to_dict(),
-                     "lights": [light_to_dict(light) for light in view.lights], "exposure": float(view.exposure)}
-            if view.name:
-                entry["name"] = view.name
-            entries.append(entry)
-        doc = {"format": FORMAT, "version": VERSION, "mesh": "mesh.obj", "encoding": encoding}
-        if encoding == "srgb":
-            doc["bits"] = bits
-        doc["saturation"] = saturation
-        doc["images"] = entries
-        if gt is not None:
-            doc["gt"] = _write_gt(tmp, gt)
-        doc["meta"] = _jsonable(dict(meta or {}))
-        text = _dumps(_jsonable(doc))
-        (tmp / SCENE_FILE).write_text(text + "\n", encoding="utf-8")
-        _fix_permissions(tmp)
-        if validate:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", DatasetWarning)
-                load_dataset(tmp)
-        if out.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=parent))
-            os.replace(out, trash / "old")
-            try:
-                os.replace(tmp, out)
-            except BaseException:
-                os.replace(trash / "old", out)
-                raise
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
+        with atomic_folder(out, force=overwrite, error=DatasetError,
+                           force_flag="overwrite=True (--overwrite)") as tmp:
+            _write_into(tmp, mesh, views, images, encoding, ext, bits, saturation, half, gt, meta, validate)
     except DatasetError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        msg = str(exc).replace(str(tmp), str(out))
-        raise DatasetError(f"{msg} (nothing was written to {out})") from None
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        raise DatasetError(f"{exc} (nothing was written to {out})" if "nothing was written" not in str(exc)
+                           else str(exc)) from None
     return out
+
+
+def _write_into(tmp: Path, mesh, views, images, encoding, ext, bits, saturation, half, gt, meta, validate) -> None:
+    """Write a dataset's files into the (temporary) folder ``tmp`` and, with ``validate``, load it back."""
+    (tmp / IMAGE_DIR).mkdir()
+    save_mesh(mesh, tmp / "mesh.obj")
+    entries = []
+    for i, (view, img) in enumerate(zip(views, images, strict=True)):
+        if not isinstance(view, View):
+            raise DatasetError(f"write_dataset: views[{i}] must be a View, got {type(view).__name__}")
+        rel = view.file or f"{IMAGE_DIR}/{i:03d}{ext}"
+        if Path(rel).suffix.lower() != ext:
+            raise DatasetError(f"write_dataset: views[{i}].file '{rel}' must end in {ext} for encoding "
+                               f"'{encoding}'")
+        dest = _relative_file(tmp, rel, "write_dataset", f"views[{i}].file")
+        if not isinstance(img, Tensor) or img.dim() not in (2, 3):
+            raise DatasetError(f"write_dataset: images[{i}] must be a tensor [H, W, 3], got "
+                               f"{getattr(img, 'shape', type(img).__name__)}")
+        if img.shape[0] != view.camera.height or img.shape[1] != view.camera.width:
+            raise DatasetError(f"write_dataset: images[{i}] is {img.shape[1]}×{img.shape[0]} but views[{i}].camera "
+                               f"is {view.camera.width}×{view.camera.height}")
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            if encoding == "linear":
+                write_exr(dest, img, half=half, allow_nonfinite=True)
+            else:
+                write_png(dest, torch.nan_to_num(img.detach().cpu(), nan=0.0), bits=bits, transfer="srgb")
+        except ImageIOError as exc:
+            raise DatasetError(f"write_dataset: images[{i}]: {exc}") from None
+        entry = {"file": rel, "camera": view.camera.to_dict(),
+                 "lights": [light_to_dict(light) for light in view.lights], "exposure": float(view.exposure)}
+        if view.name:
+            entry["name"] = view.name
+        entries.append(entry)
+    doc = {"format": FORMAT, "version": VERSION, "mesh": "mesh.obj", "encoding": encoding}
+    if encoding == "srgb":
+        doc["bits"] = bits
+    doc["saturation"] = saturation
+    doc["images"] = entries
+    if gt is not None:
+        doc["gt"] = _write_gt(tmp, gt)
+    doc["meta"] = jsonable(dict(meta or {}))
+    text = _dumps(jsonable(doc))
+    (tmp / SCENE_FILE).write_text(text + "\n", encoding="utf-8")
+    if validate:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DatasetWarning)
+            load_dataset(tmp)
 
 
 def _write_gt(tmp: Path, gt: GroundTruth) -> dict:

@@ -18,9 +18,11 @@ An atlas folder (layout and schema in ``docs/export.md``):
 - ``atlas.json`` — the sidecar: format version, channel table, encoding, size, gutter, and each
   material's rectangle in pixels and in UV.
 
-Everything is written into a temporary folder next to ``out`` and renamed into place at the end,
-so an interrupted export never leaves a half-written atlas. An existing ``out`` is refused unless
-``force=True``.
+Everything is written into a temporary folder next to ``out`` and renamed into place at the end
+(:func:`capture.outputs.atomic_folder`), so an interrupted export never leaves a half-written atlas.
+``out`` is checked before any work (:func:`capture.outputs.check_output`): an existing one is
+refused unless ``force=True``, and it may never be, contain or sit inside a reconstruction folder
+it reads.
 """
 
 from __future__ import annotations
@@ -29,7 +31,6 @@ import json
 import math
 import os
 import re
-import shutil
 import struct
 import tempfile
 import warnings
@@ -45,6 +46,8 @@ from torch import Tensor
 from materials import atlas as A
 from renderer import imageio
 from renderer.mesh import Mesh, MeshError, load_mesh, save_mesh
+
+from .outputs import atomic_folder, check_output, json_text
 
 __all__ = [
     "ATLAS_FORMAT", "ExportError", "ExportWarning", "Material", "export_atlas", "export_atlas_dirs",
@@ -291,8 +294,7 @@ def export_atlas(
         raise ExportError(f"bits must be 8 or 16, got {bits!r}")
     if transfer not in ("gamma2.2", "srgb"):
         raise ExportError(f"transfer must be 'gamma2.2' (Schüler) or 'srgb', got {transfer!r}")
-    if out.exists() and not force:
-        raise ExportError(f"{out}: output folder exists; choose another folder or pass force=True to replace it")
+    check_output(out, _input_folders(materials), force=force, error=ExportError, force_flag="force=True (--force)")
     mats = _materials(materials)
     prepared = [_prepare(m) for m in mats]
     tex, coverage, coat = [], [], []
@@ -372,11 +374,7 @@ def export_atlas(
         sidecar["gltf"] = {"file": "atlas.glb", "material": _GLTF_DOC}
 
     # -- write everything into a temp folder, then rename into place
-    parent = out.parent if str(out.parent) else Path(".")
-    if not parent.is_dir():
-        raise ExportError(f"{out}: parent folder {parent} does not exist")
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
-    try:
+    with atomic_folder(out, force=force, error=ExportError, force_flag="force=True (--force)") as tmp:
         for k, t in (("tex1", atlas[..., :4]), ("tex2", atlas[..., 4:])):
             if fmt == "png":
                 imageio.write_png(tmp / f"{k}.png", t, bits=bits, transfer="linear")
@@ -402,33 +400,28 @@ def export_atlas(
         if glb:
             dec = A.decode_schuler(atlas[..., :4], atlas[..., 4:], transfer)
             write_glb(tmp / "atlas.glb", meshes, dec)
-        (tmp / "atlas.json").write_text(json.dumps(sidecar, indent=2) + "\n")
-        _swap_into_place(tmp, out, force)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        (tmp / "atlas.json").write_text(json_text(sidecar) + "\n")
     return sidecar
 
 
-def _swap_into_place(tmp: Path, out: Path, force: bool) -> None:
-    if out.exists():
-        if not force:
-            raise ExportError(f"{out}: output folder appeared while exporting; pass force=True to replace it")
-        old = out.with_name(f".{out.name}.old-{os.getpid()}")
-        os.replace(out, old) if out.is_dir() else out.rename(old)
-        try:
-            os.replace(tmp, out)
-        except BaseException:
-            os.replace(old, out)
-            raise
-        shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
-    else:
-        os.replace(tmp, out)
+def _input_folders(materials) -> dict:
+    """The folders (and files) an export reads: reconstruction folders given as paths, materials' sources."""
+    items = [materials] if isinstance(materials, (str, os.PathLike, Material)) or isinstance(materials, Mapping) \
+        else list(materials)
+    out = {}
+    for m in items:
+        if isinstance(m, (str, os.PathLike)):
+            out[Path(m)] = "the reconstruction folder"
+        elif isinstance(m, Material) and m.source:
+            out[Path(m.source)] = f"the source of material '{m.name}'"
+    return out
 
 
 def export_atlas_dirs(recon_dirs: Sequence, out, **kwargs) -> dict:
     """Export reconstruction folders into one atlas; the entry point of ``scripts/export_atlas.py`` and
     ``shadecap export-atlas``. Material names are the folder names (made unique with a suffix)."""
+    check_output(out, {Path(d): "the reconstruction folder" for d in recon_dirs}, force=kwargs.get("force", False),
+                 error=ExportError, force_flag="force=True (--force)")
     mats, seen = [], {}
     for d in recon_dirs:
         base = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(d).resolve().name) or "material"
