@@ -44,7 +44,7 @@ from materials import Model, SumModel
 from materials import get as get_model
 from renderer.camera import Camera, CameraError
 from renderer.imageio import ImageIOError, decode, read_exr, read_png, write_exr, write_png
-from renderer.lights import LightError, light_from_dict, light_to_dict
+from renderer.lights import LightError, PointLight, light_from_dict, light_to_dict
 from renderer.mesh import Mesh, MeshError, load_mesh, save_mesh
 
 from .outputs import atomic_folder, check_output, jsonable
@@ -52,6 +52,7 @@ from .outputs import atomic_folder, check_output, jsonable
 __all__ = [
     "FORMAT", "VERSION", "ENCODINGS", "DatasetError", "DatasetWarning", "View", "GroundTruth", "Photo", "Dataset",
     "load_dataset", "write_dataset", "model_from_spec", "model_spec", "camera_sees_mesh", "dataset_root",
+    "degenerate_faces", "winding_numbers", "EXPOSURE_RANGE", "MAX_LIGHT",
 ]
 
 #: The ``format`` string of every shadecap dataset's ``scene.json``.
@@ -67,6 +68,13 @@ _IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg", ".tif", ".tiff")
 _TOP_KEYS = {"format", "version", "mesh", "encoding", "bits", "saturation", "images", "gt", "meta"}
 _VIEW_KEYS = {"file", "camera", "lights", "exposure", "name"}
 _GT_KEYS = {"model", "maps", "regions", "render", "photo"}
+#: Exposures are accepted strictly inside this range: beyond it, pixel / exposure leaves float32's range.
+EXPOSURE_RANGE = (1e-30, 1e30)
+#: Light intensities and irradiances are accepted below this: squared, or times a BRDF peak, they overflow float32.
+MAX_LIGHT = 1e20
+#: The fields of each light type that hold its intensity or irradiance.
+_LIGHT_LEVELS = {"point": ("intensity",), "directional": ("irradiance",), "hemisphere": ("upper", "lower"),
+                 "sh": ("coeffs",)}
 
 
 class DatasetError(ValueError):
@@ -111,12 +119,89 @@ def model_spec(name_or_spec, options: Mapping | None = None) -> dict:
         return {"name": spec["name"], "options": dict(opts)}
     if not isinstance(name_or_spec, str) or not name_or_spec.strip():
         raise ValueError(f"a model is a registered name or a spec dict, got {name_or_spec!r}")
-    names = [s.strip() for s in name_or_spec.split("+")]
-    if len(names) > 1:
+    parts = [_parse_part(p, name_or_spec) for p in _split_top(name_or_spec, "+", name_or_spec)]
+    if len(parts) > 1:
         if options:
-            raise ValueError(f"model '{name_or_spec}': per-part options need the spec form {{'sum': [...]}}")
-        return {"sum": [{"name": n, "options": {}} for n in names]}
-    return {"name": names[0], "options": dict(options or {})}
+            raise ValueError(f"model '{name_or_spec}': per-part options need the spec form {{'sum': [...]}} or "
+                             f"the written form 'a(k=v)+b(k=v)'")
+        return {"sum": parts}
+    if options and parts[0]["options"]:
+        raise ValueError(f"model '{name_or_spec}': options given both in the name and separately; give them once")
+    return {"name": parts[0]["name"], "options": dict(options or parts[0]["options"])}
+
+
+def _split_top(text: str, sep: str, whole: str) -> list[str]:
+    """Split ``text`` at ``sep`` outside parentheses (a '+' inside ``1e+3`` or an option value stays)."""
+    out, depth, cur = [], 0, ""
+    for ch in text:
+        if ch == "(":
+            depth += 1
+        elif ch == ")":
+            depth -= 1
+            if depth < 0:
+                raise ValueError(f"model '{whole}': unbalanced ')'")
+        if ch == sep and depth == 0:
+            out.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    if depth:
+        raise ValueError(f"model '{whole}': unbalanced '('")
+    out.append(cur)
+    if any(not x.strip() for x in out):
+        raise ValueError(f"model '{whole}': empty part; write names joined by '+', e.g. 'lambert+microfacet(D=ggx)'")
+    return [x.strip() for x in out]
+
+
+def _option_value(text: str):
+    """An option value as written: true/false/none, an int, a float, else the string itself."""
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    if low in ("none", "null") and text != "none":
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def _parse_part(text: str, whole: str) -> dict:
+    """``name`` or ``name(k=v, k2=v2)`` — the spelling the project prints (``materials.get`` names a model with
+    options ``name(k=v, ...)``) — as a spec ``{"name", "options"}``."""
+    if "(" not in text:
+        if ")" in text or "=" in text:
+            raise ValueError(f"model '{whole}': cannot read '{text}'; write name(option=value, ...)")
+        return {"name": text, "options": {}}
+    if not text.endswith(")"):
+        raise ValueError(f"model '{whole}': '{text}' must end with ')' after its options")
+    name, inner = text[:text.index("(")].strip(), text[text.index("(") + 1:-1]
+    if not name:
+        raise ValueError(f"model '{whole}': '{text}' has options but no model name before '('")
+    opts = {}
+    for item in (_split_top(inner, ",", whole) if inner.strip() else []):
+        if "=" not in item:
+            raise ValueError(f"model '{whole}': option '{item}' of '{name}' must be written key=value")
+        k, v = (x.strip() for x in item.split("=", 1))
+        if not k.isidentifier() or not v:
+            raise ValueError(f"model '{whole}': option '{item}' of '{name}' must be written key=value")
+        if k in opts:
+            raise ValueError(f"model '{whole}': option '{k}' of '{name}' given twice")
+        opts[k] = _option_value(v)
+    return {"name": name, "options": opts}
+
+
+def model_label(spec) -> str:
+    """The written form of a spec, which :func:`model_spec` reads back: ``a(k=v, ...)+b``."""
+    spec = model_spec(spec)
+    if "sum" in spec:
+        return "+".join(model_label(p) for p in spec["sum"])
+    o = spec["options"]
+    return spec["name"] + (f"({', '.join(f'{k}={v}' for k, v in sorted(o.items()))})" if o else "")
 
 
 def model_from_spec(spec) -> Model:
@@ -321,6 +406,71 @@ def camera_sees_mesh(camera: Camera, vertices: Tensor, faces: Tensor | None = No
     return True, ""
 
 
+def degenerate_faces(vertices: Tensor, faces: Tensor) -> int:
+    """How many faces have zero area at float32 precision (area ≤ (ε₃₂ · bounding-box diagonal)²)."""
+    v = vertices.detach().to("cpu", torch.float64)
+    tri = v[faces.detach().cpu().long()]
+    area = 0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1).norm(dim=-1)
+    scale = float((v.max(0).values - v.min(0).values).norm()) if len(v) else 0.0
+    return int((area <= (torch.finfo(torch.float32).eps * scale) ** 2).sum())
+
+
+def winding_numbers(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:
+    """Generalised winding number of a triangle mesh at each of ``points`` ``[N, 3]`` → ``[N]`` float64.
+
+    The solid angle the triangles subtend at the point, signed by their winding, over 4π (Van Oosterom &
+    Strackee's formula per triangle; Jacobson et al. 2013): ±1 inside a closed mesh, 0 outside, fractional
+    near the holes of an open one — so ``|w| > ½`` reads "inside" without needing a watertight mesh. Points
+    outside the mesh's bounding box are outside (0) without the sum; each other point costs O(faces).
+    """
+    v = vertices.detach().to("cpu", torch.float64).numpy()
+    tri = v[faces.detach().cpu().long().numpy()]
+    pts = torch.as_tensor(points, dtype=torch.float64).reshape(-1, 3).numpy()
+    out = np.zeros(len(pts))
+    inside_box = ((pts >= v.min(0)) & (pts <= v.max(0))).all(-1)
+    for k in np.flatnonzero(inside_box):  # numpy, not torch: one thread, no OpenMP contention (~50 ms / 100k faces)
+        d = tri - pts[k]
+        a, b, c = d[:, 0], d[:, 1], d[:, 2]
+        la, lb, lc = (np.sqrt(np.einsum("ij,ij->i", x, x)) for x in (a, b, c))
+        det = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", a, c) * lb
+               + np.einsum("ij,ij->i", b, c) * la)
+        out[k] = np.arctan2(det, den).sum() / (2 * math.pi)
+    return torch.from_numpy(out)
+
+
+def _warn_inside(scene: Path, mesh: Mesh, views: list[View], msgs: list[str]) -> None:
+    """Warn about cameras and point lights inside the object: such a view sees only the inside, such a light
+    lights only the inside (every pixel it should light is dropped as shadowed)."""
+    points, where = [], []
+    for i, view in enumerate(views):
+        points.append(view.camera.center.detach().to("cpu", torch.float64))
+        where.append((i, None))
+        for j, light in enumerate(view.lights):
+            if isinstance(light, PointLight):
+                points.append(light.position.detach().to("cpu", torch.float64).reshape(3))
+                where.append((i, j))
+    if not points:
+        return
+    w = winding_numbers(torch.stack(points), mesh.vertices, mesh.faces)
+    lights: dict[tuple, list[str]] = {}
+    for (i, j), p, wk in zip(where, points, w.tolist(), strict=True):
+        if abs(wk) <= 0.5:
+            continue
+        at = "(" + ", ".join(f"{x:.4g}" for x in p.tolist()) + ")"
+        if j is None:
+            _warn(msgs, f"{scene}: images[{i}].camera: the camera centre {at} is inside the mesh (winding number "
+                  f"{wk:.2f}): the view sees only the inside of the object and none of its pixels can be used; check "
+                  f"R and t (world-to-camera) and the mesh units")
+        else:
+            lights.setdefault((at, round(wk, 2)), []).append(f"images[{i}].lights[{j}]")
+    for (at, wk), names in lights.items():
+        more = f" and {len(names) - 3} more" if len(names) > 3 else ""
+        _warn(msgs, f"{scene}: {', '.join(names[:3])}{more}: the point light at {at} is inside the mesh (winding "
+              f"number {wk:.2f}): it lights only the inside of the object, so it adds nothing to the photos; check "
+              f"its position and the mesh units")
+
+
 def _number(x, file, fld, *, positive=False, nonneg=False, allow_none=False):
     if x is None and allow_none:
         return None
@@ -341,6 +491,11 @@ def _relative_file(root: Path, rel, file, fld) -> Path:
     if p.is_absolute() or ".." in p.parts:
         raise _err(file, fld, f"'{rel}' must be relative to the dataset folder and stay inside it",
                    "copy the file into the dataset folder and give its relative path")
+    real, base = os.path.realpath(root / p), os.path.realpath(root)
+    if os.path.commonpath([real, base]) != base:
+        raise _err(file, fld, f"'{rel}' leads outside the dataset folder through a symbolic link (to {real}); a "
+                   f"dataset's files stay inside its folder", "copy the file (or folder) into the dataset folder "
+                   "instead of linking to it")
     return root / p
 
 
@@ -433,10 +588,14 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
     exactly the listed ones (count mismatch); with ``check_images``: every image is readable, not
     truncated, RGB, of its camera's size, with some finite pixel; the ``gt`` block: the model
     exists (``materials.get``), maps are exactly the model's parameters, same size, right channels,
-    finite and within each parameter's range; the region map's ids all have names.
+    finite and within each parameter's range; the region map's ids all have names; no path leads
+    out of the folder through a symbolic link; exposures in :data:`EXPOSURE_RANGE`, light levels
+    below :data:`MAX_LIGHT`.
 
-    Non-finite pixels are counted and reported as a :class:`DatasetWarning` (kept in the images;
-    the observation stage drops them). Unknown fields are ignored with a warning.
+    Warnings (:class:`DatasetWarning`, also collected in :attr:`Dataset.warnings`): zero-area faces
+    (:func:`degenerate_faces`), a camera centre or a point light inside the mesh
+    (:func:`winding_numbers`), non-finite pixels (counted; kept in the images, the observation stage
+    drops them), unknown fields (ignored).
     """
     root = dataset_root(path)
     scene = root / SCENE_FILE
@@ -494,7 +653,10 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
         mesh = load_mesh(mesh_path)
     except MeshError as exc:
         raise _err(scene, "mesh", str(exc)) from None
-
+    n_degenerate = degenerate_faces(mesh.vertices, mesh.faces)
+    if n_degenerate:
+        _warn(msgs, f"{mesh_path}: {n_degenerate} of {len(mesh.faces)} faces have zero area (degenerate triangles: "
+              f"no surface, no normal); remove them (e.g. Blender: Mesh > Clean Up > Degenerate Dissolve)")
 
     # views
     entries = _as_list(doc["images"], scene, "images")
@@ -525,7 +687,18 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
                 lights.append(light_from_dict(d))
             except LightError as exc:
                 raise _err(scene, f"images[{i}].lights[{j}]", str(exc)) from None
+            for key in _LIGHT_LEVELS[d["type"]]:
+                level = float(np.abs(np.asarray(d[key], dtype=np.float64)).max())
+                if level >= MAX_LIGHT:
+                    raise _err(scene, f"images[{i}].lights[{j}].{key}", f"{level:.3g} is beyond the {MAX_LIGHT:.0e} "
+                               f"shadecap computes with (float32 radiometry overflows)", "give the lights in smaller "
+                               "units and scale the exposure instead (pixel = exposure · radiance)")
         exposure = _number(e["exposure"], scene, f"images[{i}].exposure", positive=True)
+        if not EXPOSURE_RANGE[0] < exposure < EXPOSURE_RANGE[1]:
+            raise _err(scene, f"images[{i}].exposure", f"{exposure:.3g} is outside ({EXPOSURE_RANGE[0]:.0e}, "
+                       f"{EXPOSURE_RANGE[1]:.0e}): the radiances (pixel / exposure) would overflow or vanish in "
+                       "float32",
+                       "rescale the exposure together with the light intensities")
         name = e.get("name", "")
         if not isinstance(name, str):
             raise _err(scene, f"images[{i}].name", f"must be a string, got {name!r}")
@@ -534,6 +707,7 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
             raise _err(scene, f"images[{i}].camera", f"the camera does not see the mesh: {why}",
                        "check R and t (world-to-camera, OpenCV: x right, y down, z forward) and the mesh units")
         views.append(View(cam, lights, exposure, str(Path(e["file"]).as_posix()), name))
+    _warn_inside(scene, mesh, views, msgs)
 
     # image count: the images/ folder holds exactly the listed images
     img_dir = root / IMAGE_DIR

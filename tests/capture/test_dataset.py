@@ -368,6 +368,87 @@ def test_path_outside_dataset_rejected(exr_ds, tmp_path):
     _raises(ds, "field 'mesh'", "stay inside it")
 
 
+@pytest.mark.parametrize("what", ["image", "mesh", "images folder"])
+def test_symlink_out_of_the_dataset_rejected(exr_ds, tmp_path, what):
+    # the docs say a dataset's files stay inside its folder; a link must not lead out of it (an output folder
+    # checked against the dataset folder would not protect the files it points to)
+    ds = _copy(exr_ds, tmp_path)
+    away = tmp_path / "elsewhere"
+    away.mkdir()
+    rel = {"image": "images/000.exr", "mesh": "mesh.obj", "images folder": "images"}[what]
+    (ds / rel).rename(away / Path(rel).name)
+    (ds / rel).symlink_to(away / Path(rel).name, target_is_directory=what == "images folder")
+    field = "mesh" if what == "mesh" else "images[0].file"
+    _raises(ds, f"field '{field}'", "outside the dataset folder through a symbolic link", str(away))
+
+
+def test_symlink_inside_the_dataset_is_fine(exr_ds, tmp_path):
+    ds = _copy(exr_ds, tmp_path)
+    (ds / "meshes").mkdir()
+    (ds / "mesh.obj").rename(ds / "meshes" / "object.obj")
+    (ds / "mesh.obj").symlink_to(Path("meshes") / "object.obj")
+    load_dataset(ds, check_images=False)
+
+
+@pytest.mark.parametrize("value", [1e-30, 1e-31, 1e30, 1e300])
+def test_exposure_outside_float32_range(exr_ds, tmp_path, value):
+    ds = _copy(exr_ds, tmp_path)
+    _edit(ds, lambda d: d["images"][1].__setitem__("exposure", value))
+    _raises(ds, "field 'images[1].exposure'", "overflow or vanish", "rescale")
+
+
+def test_huge_light_intensity(exr_ds, tmp_path):
+    ds = _copy(exr_ds, tmp_path)
+    _edit(ds, lambda d: d["images"][2]["lights"][1].__setitem__("intensity", [1.0, 1e20, 1.0]))
+    _raises(ds, "field 'images[2].lights[1].intensity'", "1e+20", "exposure")
+    _edit(ds, lambda d: d["images"][2]["lights"][1].__setitem__("intensity", [1.0, 1e19, 1.0]))
+    load_dataset(ds, check_images=False)
+
+
+def test_camera_inside_the_mesh_warns(exr_ds, tmp_path):
+    # a camera inside the object sees only its inside: every pixel is dropped; the view is named
+    ds = _copy(exr_ds, tmp_path)
+    _edit(ds, lambda d: d["images"][1]["camera"].__setitem__("t", [0.0, 0.0, 0.0]))  # centre -Rᵀt at the origin
+    with pytest.warns(DatasetWarning, match=r"images\[1\]\.camera: the camera centre \(0, 0, 0\) is inside the mesh"):
+        d = load_dataset(ds, check_images=False)
+    assert len(d.warnings) == 1
+
+
+def test_light_inside_the_mesh_warns(exr_ds, tmp_path):
+    ds = _copy(exr_ds, tmp_path)
+
+    def inside(d):
+        for view in d["images"]:
+            view["lights"][0]["position"] = [0.0, 0.1, 0.2]
+
+    _edit(ds, inside)
+    with pytest.warns(DatasetWarning, match=r"images\[0\]\.lights\[0\], images\[1\]\.lights\[0\], "
+                                            r"images\[2\]\.lights\[0\]: the point light at \(0, 0\.1, 0\.2\) is "
+                                            r"inside the mesh"):
+        d = load_dataset(ds, check_images=False)
+    assert len(d.warnings) == 1  # one warning per position, naming every entry
+
+
+def test_degenerate_faces_warn_with_their_count(exr_ds, tmp_path):
+    ds = _copy(exr_ds, tmp_path)
+    with open(ds / "mesh.obj", "a") as fh:
+        fh.write("f 1/1/1 1/1/1 2/2/2\nf 3/3/3 4/4/4 3/3/3\n")
+    with pytest.warns(DatasetWarning, match=r"mesh\.obj: 2 of \d+ faces have zero area"):
+        load_dataset(ds, check_images=False)
+
+
+def test_inside_tests_by_hand():
+    from capture.dataset import degenerate_faces, winding_numbers
+
+    sphere = uv_sphere(segments=16, rings=8)
+    w = winding_numbers(torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.3, -0.2], [0.0, 0.0, 1.5], [3.0, 0.0, 0.0]]),
+                        sphere.vertices, sphere.faces)
+    assert torch.allclose(w.abs(), torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64), atol=1e-9)
+    assert degenerate_faces(sphere.vertices, sphere.faces) == 0
+    v = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [2.0, 0.0, 0.0]])
+    assert degenerate_faces(v, torch.tensor([[0, 1, 2], [0, 0, 1], [0, 1, 3]])) == 2  # repeated, collinear
+
+
 # ------------------------------------------------------------------------------------------ atomic writes
 
 
