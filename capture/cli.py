@@ -205,10 +205,13 @@ def _cmd_demo(args) -> int:
     model_name = cfg.model.get("name", cfg.model) if isinstance(cfg.model, dict) else cfg.model
     print(f"[1/3] synthesising the {'small' if args.small else 'default'} scene ({cfg.n_views} views of "
           f"{size(cfg.image_size)} px, {size(cfg.texture_size)} maps, model {model_name}) → {out / 'dataset'}")
+    args.completed = []
     make_synthetic(cfg, out / "dataset", overwrite=True)
+    args.completed.append(out / "dataset")
     t1 = time.perf_counter()
     print(f"      {t1 - t0:.1f} s\n[2/3] reconstructing with model {args.model} → {out / 'recon'}")
     report = reconstruct(out / "dataset", model=args.model, out_dir=out / "recon", force=True)
+    args.completed.append(out / "recon")
     t2 = time.perf_counter()
     print(f"      {t2 - t1:.1f} s\n[3/3] exporting the Schüler atlas → {out / 'atlas'}")
     export_atlas_dirs([out / "recon"], out / "atlas", force=True)
@@ -276,18 +279,27 @@ def _error_text(exc: BaseException) -> str:
     return " ".join(str(exc).split("\n")) if str(exc) else type(exc).__name__
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def run(command: str, func, args) -> int:
+    """``func(args)`` with the command line's handling: a user error is one line on stderr and status 2, Ctrl-C
+    is ``interrupted; nothing written`` and status 130 (a command that finished some outputs before, as ``demo``
+    does, lists them in ``args.completed``)."""
     try:
-        if args.command != "models":
+        if command != "models":
             _import_eagerly()
-        return args.func(args)
+        return func(args)
     except USER_ERRORS as exc:
-        print(f"shadecap {args.command}: error: {_error_text(exc)}", file=sys.stderr)
+        print(f"shadecap {command}: error: {_error_text(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"\nshadecap {args.command}: interrupted; nothing written", file=sys.stderr)
+        done = getattr(args, "completed", None)
+        kept = f" by the step in progress (complete: {', '.join(map(str, done))})" if done else ""
+        print(f"\nshadecap {command}: interrupted; nothing written{kept}", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run(args.command, args.func, args)
 
 
 if __name__ == "__main__":

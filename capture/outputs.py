@@ -68,6 +68,24 @@ def _relation(out: Path, inp: Path) -> str | None:
     return None
 
 
+def _same_file_relation(out: Path, inp: Path) -> str | None:
+    """:func:`_relation` by file identity (``os.path.samefile``) of the paths that exist: catches what names
+    do not — a case-insensitive file system (``DS`` and ``ds``), hard links."""
+    def chain(p: Path) -> list[Path]:
+        return [q for q in (_abs(p), *_abs(p).parents) if q.exists()]
+
+    if not inp.exists():
+        return None
+    for k, q in enumerate(chain(out)):
+        if os.path.samefile(q, inp):
+            return "is" if k == 0 and q == _abs(out) else "sits inside"
+    if out.exists():
+        for q in chain(inp)[1:]:
+            if os.path.samefile(q, out):
+                return "contains"
+    return None
+
+
 def _inputs(inputs) -> list[tuple[Path, str]]:
     if inputs is None:
         return []
@@ -108,7 +126,7 @@ def check_output(out, inputs: Mapping | Iterable | None = None, *, force: bool =
         raise error(f"{out}: name a new folder to write (e.g. {os.path.join(os.fspath(out), 'out')}), not "
                     f"'{out}' itself")
     for inp, what in _inputs(inputs):
-        rel = _relation(_abs(out), _abs(inp)) or _relation(_real(out), _real(inp))
+        rel = _relation(_abs(out), _abs(inp)) or _relation(_real(out), _real(inp)) or _same_file_relation(out, inp)
         if rel is not None:
             harm = "writing there would change it" if rel == "sits inside" else "replacing it would delete it"
             raise error(f"{out}: the output {rel} {what} {inp}, an input: {harm}; choose an output folder outside "

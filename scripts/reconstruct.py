@@ -13,7 +13,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # shared with `shadecap reconstruct`
-from capture.cli import add_holdout_arg, add_known_args, add_pooled_arg, known_options  # noqa: E402
+from capture.cli import add_holdout_arg, add_known_args, add_pooled_arg, known_options, run  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -36,7 +36,10 @@ def main(argv=None) -> int:
     add_known_args(ap)
     add_holdout_arg(ap)
     ap.add_argument("--force", action="store_true")
-    a = ap.parse_args(argv)
+    return run("reconstruct", _reconstruct, ap.parse_args(argv))  # errors: one line, exit 2; Ctrl-C: exit 130
+
+
+def _reconstruct(a) -> int:
     import torch
 
     from capture.reconstruct import reconstruct

@@ -170,6 +170,33 @@ def test_a_ctrl_c_swallowed_by_trimesh_imports_still_stops_the_command(inputs, t
     assert list(tmp_path.iterdir()) == []
 
 
+def test_the_demo_names_the_outputs_it_finished_before_an_interrupt(capsys):
+    from types import SimpleNamespace
+
+    from capture.cli import run
+
+    def demo(args):
+        args.completed = ["out/dataset"]
+        raise KeyboardInterrupt
+
+    assert run("demo", demo, SimpleNamespace()) == 130
+    assert "interrupted; nothing written by the step in progress (complete: out/dataset)" in capsys.readouterr().err
+
+
+def test_the_reconstruct_script_handles_errors_like_the_command_line(inputs, capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("reconstruct_script", Path(__file__).parents[2] / "scripts" /
+                                                  "reconstruct.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    before = _tree(inputs / "ds")
+    assert script.main([str(inputs / "ds"), "--out", str(inputs / "ds"), "--force"]) == 2
+    err = capsys.readouterr().err
+    assert "the output is the dataset folder" in err and err.count("\n") == 1 and "Traceback" not in err
+    assert _tree(inputs / "ds") == before
+
+
 # ------------------------------------------------------------------------------------------ one real run
 
 
@@ -256,7 +283,12 @@ def test_check_output_relations_and_existing(tmp_path):
     for bad in (".", "", "..", tmp_path / "."):
         with pytest.raises(OutputError):
             check_output(bad)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "in", "old"]
+    # the same file under another name (a hard link here; a case-insensitive file system alike)
+    (tmp_path / "in" / "mesh.obj").write_text("v")
+    os.link(tmp_path / "in" / "mesh.obj", tmp_path / "hard.obj")
+    with pytest.raises(OutputError, match="the output is the mesh file"):
+        check_output(tmp_path / "hard.obj", {tmp_path / "in" / "mesh.obj": "the mesh file"}, force=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "hard.obj", "in", "old"]
 
 
 @pytest.mark.parametrize("what", ["folder", "file", "link", "read-only subfolder"])
