@@ -133,7 +133,8 @@ def check_output(out, inputs: Mapping | Iterable | None = None, *, force: bool =
                         f"every input")
     if out.exists() or out.is_symlink():
         if not force:
-            raise error(f"{out}: output folder already exists; choose another folder or pass {force_flag} to "
+            kind = "folder" if out.is_dir() else "file"
+            raise error(f"{out}: the output {kind} already exists; choose another folder or pass {force_flag} to "
                         f"replace it")
     # the nearest folder that exists: the output's parent, or the ancestor its parents will be created in
     anchor = out.parent
