@@ -21,7 +21,9 @@ least-squares line through N(s) at the integer exponents s = 1 … 200 is
 (tests/materials/test_blinn_phong.py reproduces it). The fit is 32 % low at s = 1, within 0.57 %
 for s ∈ [10, 4096] (peak +0.57 % at s ≈ 17; table in docs/models-phong-layered.md). With F = 1 the directional albedo
 never exceeds 1 for either normalisation (max 0.996 at s = 1000, 0.63 at s = 1): the lobe loses
-energy, it does not gain it.
+energy, it does not gain it. The whole material (:class:`Gotanda2010`) does gain energy toward grazing
+view: its diffuse keeps R_d(1 − F0) at every angle while the lobe adds Schlick's (1 − l·h)⁵ — directional
+albedo 1.057 at R_d = 1, F0 = 0, θ_v = 75° for a mirror-like lobe (docs/models.md, "Findings").
 
 Shininess ``s`` comes from the canonical perceptual roughness through
 :func:`materials.roughness.roughness_to_shininess` (s = 2/r⁴ − 2, clamped to [0, 2^16]).

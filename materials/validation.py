@@ -77,6 +77,35 @@ def directional_albedo(
     return (f * w[None, :, None]).sum(1)
 
 
+def directional_albedo_half_vector(
+    model: Model, params: Mapping[str, Tensor], theta_v: float, n_t: int = 768, n_phi: int = 1024
+) -> Tensor:
+    """ρ(v) = ∫ f_r(l, v) (n·l) dω_l written over the half vector, an independent check of
+    :func:`directional_albedo` that also resolves mirror-like lobes.
+
+    l = 2 (v·h) h − v maps the half vectors one to one onto the sphere of l with dω_l = 4 (v·h) dω_h;
+    θ_h = (π/2) t² with Gauss-Legendre t ∈ [0, 1] (``n_t`` nodes, dense at h = n, where every
+    half-vector lobe sits for any view) times the midpoint rule in φ_h (``n_phi`` nodes). Directions l
+    below the horizon contribute 0 (the model returns 0 there). ``theta_v`` in radians; returns ``[3]``.
+    """
+    dtype = torch.float64
+    x, w = np.polynomial.legendre.leggauss(n_t)
+    t = torch.as_tensor(0.5 * (x + 1.0), dtype=dtype)
+    wt = torch.as_tensor(0.5 * w, dtype=dtype)
+    th = 0.5 * math.pi * t * t
+    phi = (torch.arange(n_phi, dtype=dtype) + 0.5) * (2.0 * math.pi / n_phi)
+    sin = torch.sin(th)[:, None]
+    h = torch.stack([sin * torch.cos(phi), sin * torch.sin(phi), torch.cos(th)[:, None].expand(n_t, n_phi)], -1)
+    weight = (math.pi * t * wt * torch.sin(th))[:, None].expand(n_t, n_phi) * (2.0 * math.pi / n_phi)
+    h, weight = h.reshape(-1, 3), weight.reshape(-1, 1)
+    v = torch.tensor([math.sin(theta_v), 0.0, math.cos(theta_v)], dtype=dtype)
+    vh = (h * v).sum(-1, keepdim=True)
+    l = 2.0 * vh * h - v
+    g = Angles.from_vectors(torch.tensor([0.0, 0.0, 1.0], dtype=dtype), l, v.expand_as(l))
+    f = model.cosine_brdf(g, {k: x.to(dtype) for k, x in params.items()})
+    return (f * 4.0 * vh.clamp_min(0.0) * weight).sum(0)
+
+
 # -- the stress domain --------------------------------------------------------------------------
 
 #: Cosines every model must survive: grazing, exactly zero, slightly negative, normal.

@@ -9,6 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import materials
+from materials import validation
 from materials.blinn_phong import (
     FIT_INTERCEPT,
     FIT_SLOPE,
@@ -183,6 +184,28 @@ def test_directional_albedo_f0_one_at_most_one(s, normalization):
     g = Angles.from_cosines(torch.tensor(0.7, dtype=D64), torch.tensor(0.4, dtype=D64), torch.tensor(0.1, dtype=D64))
     direct = gotanda_blinn_phong_cosine(g, f0, st_, normalization)
     assert direct.item() == pytest.approx((lobe(g) * g.nh.clamp_min(0) ** s).item(), rel=1e-12)
+
+
+@pytest.mark.parametrize("f0, r, expected", [(0.0, 0.3, 1.0438), (0.04, 0.3, 1.0110), (0.0, 0.05, 1.0571),
+                                              (0.04, 0.05, 1.0251)])
+def test_whole_model_gains_energy_at_grazing_view(f0, r, expected):
+    """gotanda2010 = ρ(1 − F0)/π + lobe: the diffuse keeps 1 − F0 of the albedo at every angle while the
+    specular still reflects Schlick's rise (1 − l·h)⁵, so the directional albedo at ρ = 1 exceeds 1 toward
+    grazing view: θ_v = 75°, 1.0571 at f0 = 0 and 1.0251 at f0 = 0.04 for a mirror-like lobe (r = 0.05 → s = 2^16).
+    Two independent quadratures agree (over l, Gauss-Legendre in n·l; over the half vector)."""
+    from materials.validation import directional_albedo_half_vector
+    m = materials.get("gotanda2010")
+    p = {"albedo": torch.ones(3, dtype=D64), "f0": torch.full((3,), f0, dtype=D64), "roughness": torch.tensor([r], dtype=D64)}
+    tv = math.radians(75.0)
+    half = directional_albedo_half_vector(m, p, tv, 128, 256)[0].item()
+    assert half == pytest.approx(expected, abs=2e-4)
+    if r >= 0.3:  # the l-quadrature resolves s = 245 at this size (s = 2^16 needs 1024 × 2048 nodes)
+        over_l = validation.directional_albedo(m, p, torch.tensor([tv], dtype=D64), 128, 256)[0, 0].item()
+        assert over_l == pytest.approx(half, abs=2e-4)
+    else:  # the mirror limit: the lobe's albedo → N_fit/N_exact · F_schlick(f0, cos θ_v) · cos θ_v
+        c = math.cos(tv)
+        nfit = (0.0397436 * 65536 + 0.0856832) / ((65536 + 2) / (8 * math.pi))
+        assert half == pytest.approx(1 - f0 + nfit * (f0 + (1 - f0) * (1 - c) ** 5) * c, abs=2e-3)
 
 
 # -- environment -----------------------------------------------------------------------------------
