@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .roughness import S_MAX
+
 
 @dataclass(frozen=True)
 class ParamSpec:
@@ -76,9 +78,17 @@ COAT_ROUGHNESS = ParamSpec("coat_roughness", 1, 0.0, 1.0, 0.1, "perceptual rough
 IOR = ParamSpec("ior", 1, 1.0, 3.0, 1.5, "refractive index η of the material (Nielsen's R_F)")
 MIX = ParamSpec("mix", 1, 0.0, 1.0, 0.5, "Phong/Blinn-Phong interpolation α of Nielsen eq 3")
 MASK = ParamSpec("mask", 1, 0.0, 1.0, 1.0, "surface mask / opacity (Schüler's alpha channel)")
+#: Upper bound of the ``specular`` map: Nielsen eq 3's k_s replaces ρ_s times the lobe's energy-conserving
+#: normalisation, which for the Phong lobe of eq 1 is (s + 2)/(2π); with ρ_s ≤ 1 and the sharpest exponent the
+#: roughness conversions produce (s = S_MAX = 2^16) that is (S_MAX + 2)/(2π) = 10 430.7. A larger k_s reflects
+#: more than it receives at normal incidence for every exponent in range. For eq 1-2 (ρ_s, normalisation
+#: explicit) the bound is loose on purpose: ρ_s multiplies a dielectric R_F that is only f0(η) at normal
+#: incidence (0.04 at η = 1.5), so a fitted ρ_s may well exceed 1. Bounded, f_r ≤ SPECULAR_MAX · (S_MAX + 2)/(2π)
+#: ≈ 1.1e8 (eq 1's peak) stays far from float32 overflow (an unbounded map accepted 3e38 and returned inf).
+SPECULAR_MAX = (S_MAX + 2.0) / (2.0 * math.pi)
 SPECULAR = ParamSpec(
-    "specular", 3, 0.0, math.inf, 1.0,
-    "specular scale k_s of Nielsen eq 3 (absorbs the lobe normalisation), linear RGB",
+    "specular", 3, 0.0, SPECULAR_MAX, 1.0,
+    "specular scale: ρ_s of Nielsen eq 1-2, k_s of eq 3 (absorbs the lobe normalisation), linear RGB",
     linear=True,
 )
 

@@ -208,3 +208,25 @@ def test_environment_constant_sky():
          "roughness": torch.tensor([[0.5]]), "ior": torch.tensor([[1.5]])}
     out = m.environment(env, n, v, p)
     assert torch.allclose(out, torch.full((1, 3), 0.5 + 0.3 * fresnel_ref(1.5, 0.8)), atol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["nielsen-phong", "nielsen-blinn-phong", "nielsen-mixture"])
+def test_specular_is_bounded_by_the_sharpest_normalised_lobe(name):
+    # the bound: k_s = ρ_s (s + 2)/(2π) at ρ_s = 1 and s = S_MAX (Nielsen eq 1's normalisation, absorbed by eq 3's k_s)
+    from materials.params import SPECULAR_MAX
+    from materials.roughness import S_MAX
+    assert SPECULAR_MAX == pytest.approx((S_MAX + 2) / (2 * math.pi))
+    m = materials.get(name)
+    assert m.spec("specular").high == SPECULAR_MAX
+    n = torch.tensor([0.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match="'specular' must lie in"):
+        m(n, n, n, specular=torch.full((3,), 3e38))  # was accepted, and overflowed to inf in float32
+    # at the bound, float32 stays finite in value and gradient, mirror-like lobe included
+    g = materials.Angles.from_cosines(torch.tensor([[1.0], [0.3]]), torch.tensor([[1.0], [0.3]]),
+                                      torch.tensor([[1.0], [2 * 0.09 - 1]]))
+    p = {s.name: s.full((2,)) for s in m.params}
+    p["specular"] = torch.full((2, 3), SPECULAR_MAX, requires_grad=True)
+    p["roughness"] = torch.zeros(2, 1)
+    f = m.brdf(g, p)
+    f.sum().backward()
+    assert torch.isfinite(f).all() and f.max() < 2e8 and torch.isfinite(p["specular"].grad).all()
