@@ -289,6 +289,12 @@ def agreement(path, supersample: int = 8, views=None) -> dict:
 # fixtures
 
 
+def _describe(bsdf: dict) -> dict:
+    """A BSDF dict for ``meta``: its plain settings, and for each texture which map it holds."""
+    maps = {"reflectance": "gt albedo", "alpha": "gt roughness squared", "specular_reflectance": "gt f0"}
+    return {k: (maps.get(k, "bitmap") if isinstance(v, dict) else v) for k, v in bsdf.items()}
+
+
 def make_fixture(fx: FixtureScene, out_dir: Path, spp: int, overwrite: bool = True, views: int | None = None,
                  log=print) -> Path:
     """Build the scene with shadecap, render every view with Mitsuba, write the dataset folder."""
@@ -307,7 +313,8 @@ def make_fixture(fx: FixtureScene, out_dir: Path, spp: int, overwrite: bool = Tr
             f"{seconds[-1]:.1f} s")
     gt = GroundTruth(model=scene.model_spec, maps=scene.maps, regions=scene.regions,
                      region_names=dict(REGION_NAMES), render={"sampling": "bilinear", "shadows": True})
-    cfg_dict = cfg.to_dict()
+    # the scene's configuration, less what only shadecap's own photo rendering reads
+    cfg_dict = {k: v for k, v in cfg.to_dict().items() if k not in ("photo", "supersample", "jitter")}
     meta = {
         "generator": "scripts/make_independent_fixtures.py",
         "scene": fx.name,
@@ -316,12 +323,13 @@ def make_fixture(fx: FixtureScene, out_dir: Path, spp: int, overwrite: bool = Tr
             "name": "mitsuba", "version": mi.__version__, "variant": VARIANT,
             "integrator": "direct (emitter_samples 1, bsdf_samples 0)", "sampler": "stratified (jittered)",
             "spp": spp, "rfilter": "box", "background": "black (no environment emitter)",
-            "passes": [name for name, _ in passes], "renders_per_view": "one per (light, pass), images added",
-            "bsdfs": {name: {k: v for k, v in b.items() if not isinstance(v, dict)} for name, b in passes},
+            "renders_per_view": "one per (light, BSDF pass), images added",
+            "passes": {name: _describe(bsdf) for name, bsdf in passes},
+            "texcoords": "(u, 1 - v); bitmaps hold the gt maps as stored (row 0 = v = 1), raw, bilinear, clamp",
+            "conventions": "docs/independent-renders.md",
         },
         "photos": "linear radiance, half-float EXR, exposure 1, noise-free apart from Mitsuba's sampling",
         "config": cfg_dict,
-        "seconds_per_view": seconds,
     }
     return write_dataset(out_dir, scene.mesh, scene.views, images, encoding="linear", half=True, gt=gt, meta=meta,
                          overwrite=overwrite)

@@ -1,4 +1,7 @@
-"""Shared fixtures: the device matrix (CPU always, CUDA when present) and float64 helpers."""
+"""Shared fixtures: the device matrix (CPU always, CUDA when present), float64 helpers, and the paths of the
+scenes rendered by Mitsuba 3."""
+
+from pathlib import Path
 
 import pytest
 import torch
@@ -77,3 +80,26 @@ def _finite_and_float32_matches(forward, compare, g, p, leaves, rtol, atol=1e-6)
 def finite_and_float32_matches():
     """:func:`_finite_and_float32_matches` (session-scoped, so hypothesis' ``@given`` tests may use it)."""
     return _finite_and_float32_matches
+
+
+#: Dataset folders whose photos Mitsuba 3 rendered (docs/independent-renders.md): scene name → folder.
+MITSUBA_FIXTURES_DIR = Path(__file__).resolve().parent / "fixtures" / "mitsuba"
+MITSUBA_SCENES = ("torus-lambert", "sphere-ggx-lambert")
+
+
+def mitsuba_fixture_path(name: str) -> Path:
+    """The dataset folder of the Mitsuba-rendered scene ``name`` (one of :data:`MITSUBA_SCENES`), ready for
+    :func:`capture.dataset.load_dataset`."""
+    if name not in MITSUBA_SCENES:
+        raise KeyError(f"unknown Mitsuba fixture {name!r}; the fixtures are {list(MITSUBA_SCENES)}")
+    path = MITSUBA_FIXTURES_DIR / name
+    if not (path / "scene.json").is_file():
+        pytest.fail(f"{path} is missing; regenerate it with `python scripts/make_independent_fixtures.py "
+                    f"--out tests/fixtures/mitsuba` (needs `pip install mitsuba`)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def mitsuba_scene():
+    """``mitsuba_scene(name)`` → the dataset folder of a Mitsuba-rendered scene (:func:`mitsuba_fixture_path`)."""
+    return mitsuba_fixture_path

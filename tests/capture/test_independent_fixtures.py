@@ -1,0 +1,115 @@
+"""shadecap's renderer reproduces photos rendered by Mitsuba 3, a renderer that shares no code with it.
+
+The fixtures (tests/fixtures/mitsuba, made by scripts/make_independent_fixtures.py; docs/independent-renders.md)
+hold shadecap scenes whose photos Mitsuba rendered. Rendering their ground-truth maps with shadecap must give the
+same photos: the camera frame, pixel centres, texture orientation and filtering, light units, roughness
+convention and the specular model must all agree for the relative error to stay at the level of Mitsuba's
+sampling noise and the half-float quantisation of the photos.
+
+Thresholds, measured with ``python scripts/make_independent_fixtures.py --check tests/fixtures/mitsuba
+--supersample 4`` (the supersampling used here), per view: median relative error 2.0e-4 – 3.2e-4, 99th
+percentile 8e-3 – 4.7e-2 (the largest in the sphere's views whose highlights cross a roughness edge, where
+Mitsuba interpolates α and shadecap interpolates r). The bounds below keep a 3× margin on the median and a
+2× margin on the 99th percentile. A wrong convention lands far outside them (measured on the same views): a
+half-pixel shift of the principal point gives a median of 2.3e-2; roughness read as α instead of α = r² a median
+of 4.3e-2; the texture not flipped in v a 99th percentile of 0.9.
+"""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from capture.dataset import load_dataset, model_spec
+
+ROOT = Path(__file__).resolve().parents[2]
+
+#: Views compared per scene (every scene of tests/conftest.py's MITSUBA_SCENES): one per elevation ring of the
+#: torus; the sphere's view with the largest 99th percentile (ring 20°) and one of its top ring (55°) — a
+#: subset, to keep the test within a few seconds.
+VIEWS = {"torus-lambert": (1, 4), "sphere-ggx-lambert": (6, 10)}
+SUPERSAMPLE = 4
+MEDIAN_MAX = 1e-3
+P99_MAX = 0.1
+
+EXPECTED_MODEL = {
+    "torus-lambert": {"name": "lambert", "options": {}},
+    "sphere-ggx-lambert": {"sum": [{"name": "lambert", "options": {}},
+                                   {"name": "microfacet", "options": {"D": "ggx", "G": "smith", "F": "none"}}]},
+}
+
+
+@pytest.fixture(scope="module")
+def script():
+    """scripts/make_independent_fixtures.py as a module (its comparison helpers need no Mitsuba)."""
+    name = "make_independent_fixtures_script"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / "make_independent_fixtures.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+@pytest.mark.parametrize("name", sorted(VIEWS))
+def test_fixture_is_a_valid_dataset_rendered_by_mitsuba(name, mitsuba_scene):
+    ds = load_dataset(mitsuba_scene(name))
+    assert ds.encoding == "linear"
+    assert model_spec(ds.gt.model) == EXPECTED_MODEL[name]
+    renderer = ds.meta["renderer"]
+    assert renderer["name"] == "mitsuba" and renderer["rfilter"] == "box" and renderer["spp"] >= 256
+    assert ds.gt.render["sampling"] == "bilinear"
+    assert len(ds.views) == (8 if name == "torus-lambert" else 12)
+    assert all(v.camera.width == v.camera.height == 128 for v in ds.views)
+    assert all(m.shape[:2] == (64, 64) for m in ds.gt.maps.values())
+
+
+@pytest.mark.parametrize("name", sorted(VIEWS))
+def test_shadecap_reproduces_the_mitsuba_photos(name, script, mitsuba_scene):
+    a = script.agreement(mitsuba_scene(name), supersample=SUPERSAMPLE, views=VIEWS[name])
+    assert a["pixels"] > 4000
+    assert a["median"] < MEDIAN_MAX, a
+    assert a["p99"] < P99_MAX, a
+
+
+def test_relative_error_ignores_silhouette_and_dark_pixels(script):
+    ref = torch.ones(4, 4, 3)
+    ref[0, 0] = 0.0  # dark: no relative error
+    photo = ref.clone()
+    photo[1, 1] *= 1.1
+    photo[3, 3] = 5.0  # a silhouette pixel (partly covered): left out
+    cov = torch.ones(4, 4)
+    cov[3, 3] = 0.5
+    e = script.relative_errors(photo, ref, cov)
+    assert e.numel() == 14
+    assert torch.isclose(e.max(), torch.tensor(0.1, dtype=e.dtype))
+
+
+def test_sensor_mapping_of_an_opencv_camera(script):
+    from renderer.camera import Camera
+
+    R = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])  # looking along −x, y down = −z
+    t = torch.tensor([0.0, 0.0, 4.0])
+    cam = Camera([[100.0, 0.0, 63.5], [0.0, 100.0, 47.5], [0.0, 0.0, 1.0]], R, t, 128, 96)
+    p = script.sensor_params(cam)
+    assert p["principal_point_offset_x"] == pytest.approx(0.0) and p["principal_point_offset_y"] == pytest.approx(0.0)
+    assert p["fov"] == pytest.approx(2 * torch.rad2deg(torch.atan(torch.tensor(64.0 / 100.0))).item())
+    M = torch.as_tensor(p["to_world"], dtype=torch.float64)
+    assert torch.allclose(M[:3, 3], cam.center.double(), atol=1e-6)  # camera centre
+    assert torch.allclose(M[:3, 2], cam.forward.double(), atol=1e-6)  # Mitsuba +z = OpenCV +z (forward)
+    assert torch.allclose(M[:3, 0], -R[0].double(), atol=1e-6)  # Mitsuba +x = image left = −(OpenCV x)
+    assert torch.allclose(M[:3, 1], -R[1].double(), atol=1e-6)  # Mitsuba +y = image up = −(OpenCV y)
+    off = Camera([[100.0, 0.0, 70.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]], R, t, 128, 96)
+    p = script.sensor_params(off)
+    assert p["principal_point_offset_x"] == pytest.approx(0.5 - 70.5 / 128)
+    assert p["principal_point_offset_y"] == pytest.approx(0.5 - 40.5 / 96)
+    with pytest.raises(ValueError, match="square pixels"):
+        script.sensor_params(Camera([[100.0, 0.0, 63.5], [0.0, 90.0, 47.5], [0.0, 0.0, 1.0]], R, t, 128, 96))
+
+
+def test_missing_mitsuba_exits_with_the_install_command(script, monkeypatch):
+    monkeypatch.setitem(sys.modules, "mitsuba", None)  # makes `import mitsuba` raise ImportError
+    with pytest.raises(SystemExit, match="pip install mitsuba"):
+        script.import_mitsuba()
