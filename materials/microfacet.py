@@ -12,11 +12,16 @@ F                      any key of :data:`materials.fresnel.FRESNEL` (``none, sch
 =====================  ==========================================================================
 
 Smith's Λ must match D. ``smith`` and ``smith-correlated`` use the GGX Λ(θ) = (−1 + √(1 + α² tan²θ))/2
-for D = ggx, and Walter et al.'s (2007, eq 27) rational approximation of the Beckmann Λ,
-Λ(a) = (1 − 1.259a + 0.396a²)/(3.535a + 2.181a²) for a = 1/(α tanθ) < 1.6, else 0, for D = beckmann
-and for D = blinn-phong (Walter et al. 2007 §5.2: Phong's exponent s corresponds to Beckmann's α
-through α = √(2/(s + 2)), the inverse of our s = 2/α² − 2). The approximation's G1 is within 0.32 %
-(absolute and relative) of the exact erf form; the tests check it.
+for D = ggx, and for D = beckmann and D = blinn-phong (Walter et al. 2007 §5.2: Phong's exponent s
+corresponds to Beckmann's α through α = √(2/(s + 2)), the inverse of our s = 2/α² − 2) the Beckmann Λ,
+in one of two forms (``beckmann_lambda``):
+
+- ``"rational"`` (default): Walter et al.'s (2007, eq 27) approximation
+  Λ(a) = (1 − 1.259a + 0.396a²)/(3.535a + 2.181a²) for a = 1/(α tanθ) < 1.6, else 0, one division and
+  no transcendental; its G1 is within 0.32 % (absolute and relative) of the exact form (tested);
+- ``"exact"``: the closed form of the Smith integral for Beckmann slopes (Walter et al. 2007, eq 25's Λ),
+  Λ(a) = (erf(a) − 1)/2 + exp(−a²)/(2 a √π), one erfc and one exp; tested against the defining integral
+  Λ(ω) = ∫ max(0, ω·m) D(m) dω_m / cos θ − 1 by quadrature.
 
 Stability. The BRDF is never computed as G / (4 n·l n·v): each G has a closed-form *visibility*
 V = G/(4 n·l n·v) (see :func:`visibility_term`) in which no cosine is divided by except the
@@ -50,9 +55,14 @@ BECKMANN_NH_MIN = 1e-3
 
 DISTRIBUTIONS = ("ggx", "beckmann", "blinn-phong")
 GEOMETRIES = ("smith", "smith-correlated", "cook-torrance", "kelemen", "neumann")
+#: Forms of the Beckmann Smith Λ: Walter et al. 2007's rational approximation (eq 27) or the exact erf form.
+BECKMANN_LAMBDAS = ("rational", "exact")
+#: a = cot θ/α beyond which the exact Beckmann Λ is taken as 0: Λ(a) < exp(−a²)/(4 a³ √π) = 1.5e-19 at a = 6,
+#: far below any cosine it is added to (and erfc(a) underflows float32 near a = 9.2).
+BECKMANN_A_MAX = 6.0
 
 __all__ = [
-    "COS_EPS", "DISTRIBUTIONS", "GEOMETRIES", "ndf", "ndf_ggx", "ndf_beckmann", "ndf_blinn_phong",
+    "BECKMANN_LAMBDAS", "COS_EPS", "DISTRIBUTIONS", "GEOMETRIES", "ndf", "ndf_ggx", "ndf_beckmann", "ndf_blinn_phong",
     "smith_lambda_cos", "smith_g1", "smith_g1_ggx", "smith_g2_correlated_ggx", "visibility_term",
     "geometry_term", "microfacet_specular", "Microfacet", "CookTorrance",
 ]
@@ -168,24 +178,41 @@ def _ggx_root(c: Tensor, a2: Tensor) -> Tensor:
     return torch.sqrt(a2 + (1.0 - a2) * c * c)
 
 
-def smith_lambda_cos(cos: Tensor, alpha, distribution: str = "ggx") -> Tensor:
+def _beckmann_lambda_cos_exact(c: Tensor, alpha: Tensor) -> Tensor:
+    """cos·Λ of the exact Beckmann Λ(a) = (erf(a) − 1)/2 + exp(−a²)/(2a√π), a = cos/(α sinθ), as
+    (α sinθ exp(−a²)/√π − cos erfc(a))/2: finite at cos = 0 (α/(2√π)), 0 for a ≥ BECKMANN_A_MAX."""
+    sin2 = (1.0 - c) * (1.0 + c)
+    ok = c * c < BECKMANN_A_MAX**2 * alpha.square() * sin2  # a < A_MAX (implies sin θ > 0)
+    sin = torch.sqrt(torch.where(ok, sin2, torch.ones_like(sin2)))
+    a = torch.where(ok, c / (alpha * sin), torch.zeros_like(c))
+    lam = 0.5 * (alpha * sin * torch.exp(-a * a) / math.sqrt(math.pi) - c * torch.special.erfc(a))
+    return torch.where(ok, lam.clamp_min(0.0), torch.zeros_like(lam))
+
+
+def smith_lambda_cos(cos: Tensor, alpha, distribution: str = "ggx", beckmann_lambda: str = "rational") -> Tensor:
     """cos θ · Λ(θ), Smith's Λ multiplied by the cosine so that it stays finite at cos → 0.
 
     GGX: cos·Λ = (√(α² + (1 − α²) cos²) − cos)/2 (exact).
-    Beckmann and Blinn-Phong: Walter et al. 2007's rational Λ(a), a = cos/(α sinθ),
-    cos·Λ = α sinθ (1 − 1.259a + 0.396a²)/(3.535 + 2.181a) for a < 1.6, else 0 (clamped ≥ 0).
+    Beckmann and Blinn-Phong, ``beckmann_lambda="rational"``: Walter et al. 2007's rational Λ(a) (eq 27),
+    a = cos/(α sinθ), cos·Λ = α sinθ (1 − 1.259a + 0.396a²)/(3.535 + 2.181a) for a < 1.6, else 0 (clamped
+    ≥ 0); ``"exact"``: (erf(a) − 1)/2 + exp(−a²)/(2a√π) times cos, written as
+    (α sinθ exp(−a²)/√π − cos erfc(a))/2.
 
     Args:
         cos: n·l or n·v ``[..., 1]`` (clamped to [0, 1]).
         alpha: ``[..., 1]``, clamped to [ALPHA_MIN, 1].
         distribution: the D this Λ belongs to (one of :data:`DISTRIBUTIONS`).
+        beckmann_lambda: one of :data:`BECKMANN_LAMBDAS` (ignored for GGX).
     """
     fn = "smith_lambda_cos"
     c = _cos_tensor(cos, "cos", fn).clamp(0.0, 1.0)
     alpha = _alpha(alpha, fn)
     _choice(distribution, DISTRIBUTIONS, "normal distribution D")
+    _choice(beckmann_lambda, BECKMANN_LAMBDAS, "Beckmann Λ form")
     if distribution == "ggx":
         return 0.5 * (_ggx_root(c, alpha.square()) - c)
+    if beckmann_lambda == "exact":
+        return _beckmann_lambda_cos_exact(c, alpha)
     sin2 = (1.0 - c) * (1.0 + c)
     ok = c * c < 2.56 * alpha.square() * sin2  # a < 1.6 (implies sin θ > 0)
     sin = torch.sqrt(torch.where(ok, sin2, torch.ones_like(sin2)))
@@ -194,10 +221,11 @@ def smith_lambda_cos(cos: Tensor, alpha, distribution: str = "ggx") -> Tensor:
     return torch.where(ok, lam.clamp_min(0.0), torch.zeros_like(lam))
 
 
-def smith_g1(cos: Tensor, alpha, distribution: str = "ggx") -> Tensor:
-    """Smith's monodirectional masking G1 = 1/(1 + Λ) = cos/(cos + cos·Λ) ∈ [0, 1], ``[..., 1]``; 0 at cos ≤ 0."""
+def smith_g1(cos: Tensor, alpha, distribution: str = "ggx", beckmann_lambda: str = "rational") -> Tensor:
+    """Smith's monodirectional masking G1 = 1/(1 + Λ) = cos/(cos + cos·Λ) ∈ [0, 1], ``[..., 1]``; 0 at cos ≤ 0.
+    ``beckmann_lambda``: the Beckmann Λ form (:data:`BECKMANN_LAMBDAS`)."""
     c = _cos_tensor(cos, "cos", "smith_g1").clamp(0.0, 1.0)
-    lc = smith_lambda_cos(c, alpha, distribution)
+    lc = smith_lambda_cos(c, alpha, distribution, beckmann_lambda)
     g1 = c / (c + lc)  # c + lc ≥ α/3.535 > 0 at c = 0 (both D), > 0 elsewhere
     return torch.where(cos > 0, g1, torch.zeros_like(g1))
 
@@ -238,7 +266,7 @@ def smith_g2_correlated_ggx(nl: Tensor, nv: Tensor, alpha) -> Tensor:
 
 
 # -- geometry / visibility ------------------------------------------------------------------------------
-def visibility_term(name: str, g: Angles, alpha, distribution: str = "ggx") -> Tensor:
+def visibility_term(name: str, g: Angles, alpha, distribution: str = "ggx", beckmann_lambda: str = "rational") -> Tensor:
     """V = G / (4 n·l n·v) for the geometry term ``name``, in a form that does not divide by a
     vanishing cosine (see module docstring), ``[..., 1]``; 0 unless n·l > 0 and n·v > 0.
 
@@ -256,6 +284,7 @@ def visibility_term(name: str, g: Angles, alpha, distribution: str = "ggx") -> T
         g: shading cosines.
         alpha: ``[..., 1]`` (only the Smith terms use it), clamped to [ALPHA_MIN, 1].
         distribution: the D whose Smith Λ is used (Smith terms only).
+        beckmann_lambda: the Beckmann Λ form for D = beckmann / blinn-phong (:data:`BECKMANN_LAMBDAS`).
     """
     fn = "visibility_term"
     _choice(name, GEOMETRIES, "geometry term G")
@@ -265,16 +294,16 @@ def visibility_term(name: str, g: Angles, alpha, distribution: str = "ggx") -> T
     nl = g.nl.clamp(COS_EPS, 1.0)
     nv = g.nv.clamp(COS_EPS, 1.0)
     if name == "smith":
-        lam_l = smith_lambda_cos(nl, alpha, distribution)
-        lam_v = smith_lambda_cos(nv, alpha, distribution)
+        lam_l = smith_lambda_cos(nl, alpha, distribution, beckmann_lambda)
+        lam_v = smith_lambda_cos(nv, alpha, distribution, beckmann_lambda)
         vis = 0.25 / ((nl + lam_l) * (nv + lam_v))
     elif name == "smith-correlated":
         if distribution == "ggx":
             a2 = alpha.square()
             vis = 0.5 / (nv * _ggx_root(nl, a2) + nl * _ggx_root(nv, a2))
         else:
-            lam_l = smith_lambda_cos(nl, alpha, distribution)
-            lam_v = smith_lambda_cos(nv, alpha, distribution)
+            lam_l = smith_lambda_cos(nl, alpha, distribution, beckmann_lambda)
+            lam_v = smith_lambda_cos(nv, alpha, distribution, beckmann_lambda)
             vis = 0.25 / (nl * nv + nv * lam_l + nl * lam_v)
     elif name == "cook-torrance":
         lh = g.lh.clamp(COS_EPS, 1.0)
@@ -288,7 +317,7 @@ def visibility_term(name: str, g: Angles, alpha, distribution: str = "ggx") -> T
     return torch.where(g.front, vis, torch.zeros_like(vis))
 
 
-def geometry_term(name: str, g: Angles, alpha, distribution: str = "ggx") -> Tensor:
+def geometry_term(name: str, g: Angles, alpha, distribution: str = "ggx", beckmann_lambda: str = "rational") -> Tensor:
     """Geometric attenuation (masking-shadowing) G ∈ [0, 1], ``[..., 1]``; 0 unless front-facing.
 
     ================  ==============================================================================
@@ -305,9 +334,10 @@ def geometry_term(name: str, g: Angles, alpha, distribution: str = "ggx") -> Ten
         g: shading cosines.
         alpha: ``[..., 1]`` used by the Smith terms, clamped to [ALPHA_MIN, 1].
         distribution: which D's Λ the Smith terms use (``ggx``; ``beckmann`` and ``blinn-phong``
-            share Walter's rational Beckmann Λ).
+            share the Beckmann Λ).
+        beckmann_lambda: that Beckmann Λ's form, ``"rational"`` (Walter's) or ``"exact"`` (erf).
     """
-    vis = visibility_term(name, g, alpha, distribution)
+    vis = visibility_term(name, g, alpha, distribution, beckmann_lambda)
     gt = 4.0 * g.nl.clamp(COS_EPS, 1.0) * g.nv.clamp(COS_EPS, 1.0) * vis
     return torch.where(g.front, gt.clamp(max=1.0), torch.zeros_like(gt))
 
@@ -323,7 +353,7 @@ def _fresnel(F) -> Callable[[Tensor, Tensor], Tensor]:
 
 
 def microfacet_specular(g: Angles, f0: Tensor, alpha, D: str = "ggx", G: str = "smith-correlated",
-                        F="schlick") -> Tensor:
+                        F="schlick", beckmann_lambda: str = "rational") -> Tensor:
     """Microfacet specular BRDF f_r = D(h) F(l·h) G / (4 n·l n·v) (Gotanda 2014 eq 1), computed as
     D · F · V with V = :func:`visibility_term`.
 
@@ -335,6 +365,8 @@ def microfacet_specular(g: Angles, f0: Tensor, alpha, D: str = "ggx", G: str = "
         D: one of :data:`DISTRIBUTIONS`.
         G: one of :data:`GEOMETRIES`; Smith terms use the Λ of D.
         F: a key of :data:`materials.fresnel.FRESNEL` or a callable ``f(f0, cos) -> [..., C]``.
+        beckmann_lambda: the Smith terms' Beckmann Λ for D = beckmann / blinn-phong, ``"rational"``
+            (Walter et al. 2007 eq 27, default) or ``"exact"`` (the erf form).
 
     Returns:
         f_r in 1/sr ``[..., C]`` (no cosine); 0 unless n·l > 0 and n·v > 0.
@@ -346,7 +378,7 @@ def microfacet_specular(g: Angles, f0: Tensor, alpha, D: str = "ggx", G: str = "
     alpha = _alpha(alpha, fn)
     _choice(D, DISTRIBUTIONS, "normal distribution D")
     fres = _fresnel(F)
-    vis = visibility_term(G, g, alpha, distribution=D)
+    vis = visibility_term(G, g, alpha, distribution=D, beckmann_lambda=beckmann_lambda)
     f = ndf(D, g.nh, alpha) * vis * fres(f0, g.fresnel_cos)
     return torch.where(g.front, f, torch.zeros_like(f))
 
@@ -364,19 +396,24 @@ class Microfacet(Model):
         D: ``ggx`` (default), ``beckmann``, ``blinn-phong``.
         G: ``smith-correlated`` (default), ``smith``, ``cook-torrance``, ``kelemen``, ``neumann``.
         F: ``schlick`` (default), ``none``, ``exact`` (Gotanda eq 2), ``sg`` (eq 3), ``schuler``.
+        beckmann_lambda: the Smith Λ of D = beckmann / blinn-phong, ``rational`` (Walter et al. 2007
+            eq 27, default; G1 within 0.32 % of exact) or ``exact`` (the erf form).
 
     Parameters: ``f0`` (RGB), ``roughness`` (α = roughness.roughness_to_alpha(r) = r²).
     """
 
-    def __init__(self, D: str = "ggx", G: str = "smith-correlated", F: str = "schlick"):
+    def __init__(self, D: str = "ggx", G: str = "smith-correlated", F: str = "schlick",
+                 beckmann_lambda: str = "rational"):
         self.D = _choice(D, DISTRIBUTIONS, "microfacet option D")
         self.G = _choice(G, GEOMETRIES, "microfacet option G")
         self.F = _choice(F, tuple(FRESNEL), "microfacet option F")
+        self.beckmann_lambda = _choice(beckmann_lambda, BECKMANN_LAMBDAS, "microfacet option beckmann_lambda")
         self.params = (replace(F0, linear=F in _AFFINE_IN_F0), ROUGHNESS)
 
     def brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
         alpha = rough.roughness_to_alpha(p["roughness"])
-        return microfacet_specular(g, p["f0"], alpha, D=self.D, G=self.G, F=self.F)
+        return microfacet_specular(g, p["f0"], alpha, D=self.D, G=self.G, F=self.F,
+                                   beckmann_lambda=self.beckmann_lambda)
 
 
 @register("cook-torrance", "Cook & Torrance 1981: Lambert + Beckmann D, V-cavity G, exact Fresnel from f0")
