@@ -10,9 +10,10 @@ Thresholds, measured with ``python scripts/make_independent_fixtures.py --check 
 --supersample 4`` (the supersampling used here), per view: median relative error 2.0e-4 – 3.2e-4, 99th
 percentile 8e-3 – 4.7e-2 (the largest in the sphere's views whose highlights cross a roughness edge, where
 Mitsuba interpolates α and shadecap interpolates r). The bounds below keep a 3× margin on the median and a
-2× margin on the 99th percentile. A wrong convention lands far outside them (measured on the same views): a
-half-pixel shift of the principal point gives a median of 2.3e-2; roughness read as α instead of α = r² a median
-of 4.3e-2; the texture not flipped in v a 99th percentile of 0.9.
+2× margin on the 99th percentile. A wrong convention lands far outside them (measured on the first two views
+of each scene at k = 8, docs/independent-renders.md): a half-pixel shift of the principal point gives a median
+of 2.3e-2; roughness read as α instead of α = r² a median of 4.3e-2; the texture not flipped in v a 99th
+percentile of 0.9.
 """
 
 import importlib.util
