@@ -2,8 +2,16 @@
 Plausible Real-Time Shading Model", 2.5 and its appendix).
 
 Parameters (canonical maps → the paper's): ``albedo`` = K_diffuse, ``f0`` = K_specular,
-``roughness`` r → glossiness g = roughness.roughness_to_glossiness(r) → exponent
-e = 2^(12 g) = roughness.glossiness_to_shininess(g) (= max(s, 1) with s = 2/r⁴ − 2).
+``roughness`` r → glossiness g = roughness.roughness_to_glossiness(r) clamped to [0, 1]
+(:func:`schuler_glossiness`) → exponent e = 2^(12 g) = roughness.glossiness_to_shininess(g) ∈ [1, 4096]
+(= s = 2/r⁴ − 2 clamped to [1, 4096]).
+
+Glossiness range. The paper derives e "from a surface glossiness parameter g in the range 0-1 (rough to
+smooth)" (the paragraph after e = 2^(12g)), stores g in a texture channel (the two-RGBA layout, which
+:mod:`materials.atlas` writes with g ∈ [0, 1]) and its hemisphere term divides by 1 − g, so g = 1 is its
+mirror. Point lights and the two hemispheres therefore share g ∈ [0, 1], e ∈ [1, 2^12]: every
+roughness below r = (2/4098)^(1/4) = 0.1487 is Schüler's smoothest surface, e = 4096 (the generic
+conversions of :mod:`materials.roughness` reach g = 4/3, e = 2^16, for the other models).
 
 Units. Schüler writes radiance as I = k_diffuse Σ N·L E for Lambert, i.e. his I is π times the
 radiance of our convention L = f_r · (n·l) · E (DESIGN.md), in which Lambert is ρ/π. His
@@ -67,11 +75,13 @@ from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
 
 VARIANTS = ("optimized", "cook-torrance-simplified", "kelemen-szirmay-kalos", "cook-torrance-full")
+#: Largest glossiness of the paper ("g in the range 0-1"): e ≤ 2^(12·1) = 4096, for point lights and hemispheres.
+SCHULER_G_MAX = 1.0
 #: Floor of 1 − g in the hemisphere weight R·z/(1 − g) (g = 1 is a mirror: a hard step).
 ONE_MINUS_G_EPS = 1e-6
 
 __all__ = [
-    "VARIANTS", "schuler_exponent", "schuler_distribution", "schuler_optimized",
+    "SCHULER_G_MAX", "VARIANTS", "schuler_glossiness", "schuler_exponent", "schuler_distribution", "schuler_optimized",
     "schuler_cook_torrance_simplified", "schuler_kelemen_szirmay_kalos", "schuler_cook_torrance_full",
     "schuler_specular", "schuler_hemisphere_diffuse", "schuler_hemisphere_specular", "Schuler",
 ]
@@ -97,9 +107,14 @@ def _lh(g: Angles) -> Tensor:
     return g.lh.clamp(COS_EPS, 1.0)
 
 
+def schuler_glossiness(roughness: Tensor) -> Tensor:
+    """Canonical roughness r → Schüler's glossiness g = roughness_to_glossiness(r) clamped to the paper's [0, 1]."""
+    return rough.roughness_to_glossiness(roughness).clamp(0.0, SCHULER_G_MAX)
+
+
 def schuler_exponent(roughness: Tensor) -> Tensor:
-    """Canonical roughness r → Schüler's exponent e = 2^(12 g), g = roughness_to_glossiness(r); e ∈ [1, 2^16]."""
-    return rough.glossiness_to_shininess(rough.roughness_to_glossiness(roughness))
+    """Canonical roughness r → Schüler's exponent e = 2^(12 g), g = :func:`schuler_glossiness`; e ∈ [1, 4096]."""
+    return rough.glossiness_to_shininess(schuler_glossiness(roughness))
 
 
 def schuler_distribution(nh: Tensor, e: Tensor) -> Tensor:
@@ -199,14 +214,14 @@ def schuler_hemisphere_specular(env: HemisphereLight, n: Tensor, v: Tensor, f0: 
     F = lerp(K_s, min(60 K_s, 1), g (1 − N·V)⁴) for ``fresnel="scaled"`` (default) or the printed
     F(g N·V) = lerp(K_s, min(60 K_s, 1), (1 − g N·V)⁴) for ``"printed"`` (module docstring).
 
-    R = 2 (N·V) N − V; g = roughness_to_glossiness(r) clamped to [0, 1]; F = Schüler's lerp Fresnel.
+    R = 2 (N·V) N − V; g = :func:`schuler_glossiness` (∈ [0, 1], as for point lights); F = Schüler's lerp Fresnel.
     See the module docstring for the reading of the interpolation weight. 0 where n·v ≤ 0.
     A uniform environment (E_upper = E_lower = E, radiance E/π) gives F(g N·V) · E/π: a mirror of
     reflectance F, as expected.
     """
     _check_env(env, n, v, "schuler_hemisphere_specular")
     nv = (n * v).sum(-1, keepdim=True)
-    glos = rough.roughness_to_glossiness(roughness).clamp(0.0, 1.0)
+    glos = schuler_glossiness(roughness)
     r = reflect(v, n)
     rz = (r * env.up.to(r)).sum(-1, keepdim=True)
     t = 0.5 * (1.0 + (rz / (1.0 - glos).clamp_min(ONE_MINUS_G_EPS)).clamp(-1.0, 1.0))
@@ -233,7 +248,8 @@ class Schuler(Model):
         variant: ``optimized`` (default), ``cook-torrance-simplified``, ``kelemen-szirmay-kalos``,
             ``cook-torrance-full`` (see :data:`VARIANTS` and the module docstring).
 
-    Parameters: ``albedo`` (K_diffuse), ``f0`` (K_specular), ``roughness`` (g = roughness_to_glossiness).
+    Parameters: ``albedo`` (K_diffuse), ``f0`` (K_specular), ``roughness`` (g = :func:`schuler_glossiness`,
+    the paper's [0, 1], for point lights and hemispheres alike).
     """
 
     def __init__(self, variant: str = "optimized", hemisphere_fresnel: str = "scaled"):

@@ -51,6 +51,10 @@ def directional_albedo(brdf, theta_v, n_mu=192, n_phi=128):
 def test_exponent_and_distribution():
     assert sc.schuler_exponent(t64(rough.shininess_to_roughness(t64(4096.0)).item())).item() == pytest.approx(4096)
     assert sc.schuler_exponent(t64(1.0)).item() == 1.0  # s = 0 < 1 → g = 0 → e = 1
+    # the paper's g ∈ [0, 1] ("g in the range 0-1 (rough to smooth)"): e ≤ 4096 for point lights too, as for the
+    # hemisphere term (which divides by 1 − g); r = R_MIN (s = 2^16) is Schüler's smoothest surface, not 2^16
+    assert sc.schuler_exponent(t64(rough.R_MIN)).item() == pytest.approx(4096)
+    assert sc.schuler_glossiness(t64(rough.R_MIN)).item() == 1.0
     from scipy.integrate import quad
 
     for e in (1.0, 10.0, 1000.0):
@@ -180,6 +184,19 @@ def test_hemisphere_uniform_environment_is_mirror_of_reflectance_f():
     torch.testing.assert_close(out, (p["albedo"] * 2.0 / math.pi + f_scaled * 2.0 / math.pi).expand_as(out))
     lam = materials.get("lambert").environment(env, n, v, {"albedo": p["albedo"]})
     torch.testing.assert_close(sc.schuler_hemisphere_diffuse(env, n, v, p["albedo"]), lam)
+
+
+def test_point_lights_and_hemispheres_share_one_glossiness_range():
+    # every roughness: the exponent of the point-light lobe is 2^(12 g) for the g the hemisphere term uses
+    r = torch.linspace(0.0, 1.0, 101, dtype=torch.float64)[:, None]
+    g = sc.schuler_glossiness(r)
+    assert g.min().item() == 0.0 and g.max().item() == 1.0
+    torch.testing.assert_close(sc.schuler_exponent(r), torch.exp2(12 * g))
+    # below r = (2/4098)^(1/4) the lobe no longer sharpens: same f_r at R_MIN and at the paper's e = 4096
+    gg = Angles.from_cosines(t64(0.8), t64(0.8), t64(2 * 0.64 - 1))
+    f0 = t64(0.04, 0.04, 0.04)
+    r4096 = rough.shininess_to_roughness(t64(4096.0))
+    torch.testing.assert_close(sc.schuler_specular(gg, f0, t64(rough.R_MIN)), sc.schuler_specular(gg, f0, r4096))
 
 
 def test_hemisphere_specular_weight():
