@@ -19,6 +19,8 @@ from torch import Tensor
 
 #: Squared-length floor below which a vector is treated as zero by :func:`safe_normalize`.
 NORM_EPS = 1e-24
+#: Squared length below which :func:`safe_normalize` rescales a vector before normalising it (|x| < 1e-3).
+SCALE_BELOW_SQ = 1e-6
 
 
 def dot(a: Tensor, b: Tensor) -> Tensor:
@@ -32,19 +34,23 @@ def safe_normalize(x: Tensor, fallback: Tensor | None = None) -> Tensor:
     The gradient is finite everywhere (the double-``where`` trick: the invalid branch never sees
     a zero length). ``fallback`` defaults to +z.
 
-    ``x`` is first divided by its largest absolute component (a constant for autograd: the unit
-    vector is scale-invariant, so value and gradient are unchanged), so the normalisation itself
-    works on a vector of length in [1, √3]. Without it the backward pass of ``x · |x|^-1`` forms
-    ``x (x·g) |x|^-3``, which overflows float32 for |x| ≈ 1e-11 (e.g. the half vector l + v of a
-    grazing mirror pair, n·l = n·v ≈ 1e-11) although the true gradient (I − u uᵀ) g / |x| is finite.
+    A short ``x`` (|x| ≤ 1e-3) is first divided by its largest absolute component (a constant for
+    autograd: the unit vector is scale-invariant, so value and gradient are unchanged), so the
+    normalisation works on a vector of length in [1, √3]. Without it the backward pass of
+    ``x · |x|^-1`` forms ``x (x·g) |x|^-3``, which overflows float32 for |x| ≈ 1e-11 (e.g. the half
+    vector l + v of a grazing mirror pair, n·l = n·v ≈ 1e-11) although the true gradient
+    (I − u uᵀ) g / |x| is finite. Longer vectors keep the plain ``x · |x|^-1`` (bit for bit the
+    usual result; there the intermediate |x|^-3 (x·g) ≤ 1e6 |g| stays finite for any |g| < 3e32).
     """
     sq = dot(x, x)
     ok = sq > NORM_EPS
+    big = sq > SCALE_BELOW_SQ
+    plain = x * torch.rsqrt(torch.where(big, sq, torch.ones_like(sq)))
     scale = x.detach().abs().amax(dim=-1, keepdim=True)
-    scale = torch.where(ok, scale, torch.ones_like(scale))
+    scale = torch.where(ok & ~big, scale, torch.ones_like(scale))
     y = x / scale
-    yy = torch.where(ok, dot(y, y), torch.ones_like(sq))
-    unit = y * torch.rsqrt(yy)
+    yy = torch.where(ok & ~big, dot(y, y), torch.ones_like(sq))
+    unit = torch.where(big, plain, y * torch.rsqrt(yy))
     if fallback is None:
         fallback = torch.zeros_like(x)
         fallback[..., 2] = 1.0
