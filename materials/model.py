@@ -19,6 +19,8 @@ direction) and visibility V is ``E · V · model.cosine_brdf(g, p)``, where
 
 from __future__ import annotations
 
+import contextvars
+import functools
 import inspect
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING
@@ -26,11 +28,46 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from .geometry import Angles
+from .geometry import Angles, check_angles
 from .params import ParamSpec, check_params
 
 if TYPE_CHECKING:
     from .environment import Environment
+
+#: How many validated entry points (brdf, cosine_brdf, environment) are running in this context: only the
+#: outermost one checks its parameters (a model that calls its parts, its bottom layer or its base model
+#: hands them values it derived — e.g. a coat's relative index below 1 — that are not canonical maps).
+_ENTRY_DEPTH: contextvars.ContextVar[int] = contextvars.ContextVar("materials_model_entry_depth", default=0)
+#: The entry points validated, and the position of their parameter dict after ``self``.
+_ENTRY_POINTS = {"brdf": 1, "cosine_brdf": 1, "environment": 3}
+
+
+def _validated(fn: Callable, name: str) -> Callable:
+    """Wrap a public entry point of a :class:`Model` so that its outermost call validates the parameters."""
+    if getattr(fn, "_validates_params", False):
+        return fn
+    index = _ENTRY_POINTS[name]
+
+    @functools.wraps(fn)
+    def entry(self, *args, **kwargs):
+        depth = _ENTRY_DEPTH.get()
+        if depth == 0:
+            if name != "environment":
+                check_angles(args[0] if args else kwargs.get("g"), f"model '{self.name}'.{name}")
+            p = args[index] if len(args) > index else kwargs.get("p")
+            p = {} if p is None else p  # a model without parameters may be called without a dict
+            if not isinstance(p, Mapping):
+                raise TypeError(f"model '{self.name}'.{name}: p must be a mapping of parameter name → tensor, "
+                                f"got {type(p).__name__}")
+            self.check(p)
+        token = _ENTRY_DEPTH.set(depth + 1)
+        try:
+            return fn(self, *args, **kwargs)
+        finally:
+            _ENTRY_DEPTH.reset(token)
+
+    entry._validates_params = True
+    return entry
 
 
 class Model:
@@ -41,6 +78,13 @@ class Model:
     alone (e.g. Gotanda's 1/max(n·l, n·v)), and :meth:`environment` when their paper defines a
     response to environment lighting.
 
+    Validation. :meth:`brdf`, :meth:`cosine_brdf` and :meth:`environment` (the base class's and every
+    subclass's override, wrapped when the subclass is defined) check the parameter dict once, at the
+    public entry: names, channels, finiteness and declared ranges (:meth:`check`), raising ``ValueError``
+    that names the parameter; ``brdf``/``cosine_brdf`` also check that ``g`` is an :class:`Angles`. Calls
+    made from inside a model (its parts, its bottom layer, its base) are not checked again. The check is
+    one min/max pass per parameter (a few ms per 10⁶ samples, against tens of ms for the lobes).
+
     Attributes:
         name: registry name (set by :func:`register`).
         description: one line for :func:`available`.
@@ -50,6 +94,13 @@ class Model:
     name: str = ""
     description: str = ""
     params: tuple[ParamSpec, ...] = ()
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        for entry in _ENTRY_POINTS:  # as resolved through the MRO: a mixin's method is an entry point too
+            fn = getattr(cls, entry)
+            if not getattr(fn, "_validates_params", False):
+                setattr(cls, entry, _validated(fn, entry))
 
     # -- to implement -------------------------------------------------------------------------
     def brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
@@ -107,8 +158,7 @@ class Model:
         full = self.defaults(device=g.nl.device, dtype=g.nl.dtype)
         full.update({k: torch.as_tensor(x, dtype=g.nl.dtype, device=g.nl.device) for k, x in params.items()})
         full = {k: (x.unsqueeze(-1) if x.dim() == 0 else x) for k, x in full.items()}
-        self.check(full)
-        return self.brdf(g, full)
+        return self.brdf(g, full)  # checked there
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} '{self.name}' params={list(self.param_names)}>"
@@ -212,6 +262,10 @@ class KnownParams(Model):
     def __repr__(self) -> str:
         known = ", ".join(f"{k}={[round(x, 6) for x in t.tolist()]}" for k, t in self.known.items())
         return f"<KnownParams '{self.name}' params={list(self.param_names)} known: {known}>"
+
+
+for _entry in _ENTRY_POINTS:  # the base class's own entry points (cosine_brdf = brdf · n·l, environment)
+    setattr(Model, _entry, _validated(Model.__dict__[_entry], _entry))
 
 
 # -- registry ---------------------------------------------------------------------------------

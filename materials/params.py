@@ -56,9 +56,12 @@ class ParamSpec:
                 f"{prefix}parameter '{self.name}' must have a last dimension of {self.channels}"
                 f"{' (or 1, broadcast)' if self.channels != 1 else ''}, got shape {tuple(value.shape)}"
             )
-        if not torch.isfinite(value).all():
+        if value.numel() == 0:
+            return
+        # one pass and one synchronisation: min and max propagate NaN, and an inf is the min or the max
+        lo, hi = (float(x) for x in torch.stack(torch.aminmax(value.detach())).tolist())
+        if not (math.isfinite(lo) and math.isfinite(hi)):
             raise ValueError(f"{prefix}parameter '{self.name}' contains NaN or inf values")
-        lo, hi = value.min().item(), value.max().item()
         if lo < self.low - 1e-6 or hi > self.high + 1e-6:
             raise ValueError(
                 f"{prefix}parameter '{self.name}' must lie in [{self.low}, {self.high}], "

@@ -111,3 +111,37 @@ def test_known_params_model_holds_values_and_exposes_the_rest():
             materials.KnownParams(base, bad)
     with pytest.raises(ValueError, match="nothing is left"):
         materials.KnownParams(materials.get("lambert"), {"albedo": 0.5})
+
+
+def test_brdf_cosine_brdf_and_environment_validate_their_parameters_once(monkeypatch):
+    g = Angles.from_cosines(torch.tensor([[0.5]]), torch.tensor([[0.6]]), torch.tensor([[0.1]]))
+    bad = {"albedo": torch.tensor([[0.5, 0.5, 0.5]]), "f0": torch.tensor([[1.5, 0.04, 0.04]]),
+           "roughness": torch.tensor([[0.5]])}
+    for name in ("ggx-lambert", "gotanda2012", "schuler", "gotanda2012-layered"):
+        m = materials.get(name)
+        p = {**m.defaults((1,)), **{k: v for k, v in bad.items() if k in m.param_names}}
+        for fn in (m.brdf, m.cosine_brdf):
+            with pytest.raises(ValueError, match="'f0' must lie in"):
+                fn(g, p)
+        with pytest.raises(ValueError, match="missing parameter"):
+            m.brdf(g, {})
+        with pytest.raises(TypeError, match="Angles"):
+            m.brdf(torch.zeros(1, 3), m.defaults((1,)))
+    hemi = materials.HemisphereLight(torch.ones(3), torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+    n = torch.tensor([[0.0, 0.0, 1.0]])
+    m = materials.get("schuler")
+    with pytest.raises(ValueError, match="'albedo' contains NaN"):
+        m.environment(hemi, n, n, {**m.defaults((1,)), "albedo": torch.full((1, 3), float("nan"))})
+    # once, at the outermost entry: a sum of parts, a coat over a bottom and known parameters are checked once,
+    # and the values a model derives for its parts (a Nielsen bottom's η relative to a denser coat, 1.2/1.5 < 1,
+    # below the canonical range [1, 3]) are not checked again
+    calls = []
+    real = materials.Model.check
+    monkeypatch.setattr(materials.Model, "check", lambda self, p: (calls.append(self.name), real(self, p))[1])
+    layered = materials.get("gotanda2012-layered", bottom="nielsen-phong")
+    p = {**layered.defaults((1,)), "ior": torch.tensor([[1.2]]), "coat_ior": torch.tensor([[1.5]])}
+    assert torch.isfinite(layered.cosine_brdf(g, p)).all()
+    known = materials.KnownParams(materials.get("ggx-lambert"), {"f0": 0.04})
+    known.brdf(g, known.defaults((1,)))
+    materials.get("lambert")(n[0], n[0], n[0])
+    assert calls == [layered.name, known.name, "lambert"]

@@ -347,7 +347,8 @@ def test_environment_rejects_other_lights_and_simplified_has_none():
     with pytest.raises(NotImplementedError, match="HemisphereLight"):
         m.environment(hemi, n, n, m.defaults())
     with pytest.raises(NotImplementedError):
-        materials.get("gotanda-on-simplified").environment(SHLight(torch.zeros(9, 3)), n, n, {})
+        simplified = materials.get("gotanda-on-simplified")
+        simplified.environment(SHLight(torch.zeros(9, 3)), n, n, simplified.defaults())
 
 
 # -- registry --------------------------------------------------------------------------------------

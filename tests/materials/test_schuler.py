@@ -233,8 +233,9 @@ def test_hemisphere_specular_weight():
 
 def test_environment_rejects_other_lights():
     with pytest.raises(NotImplementedError, match="defines no response"):
-        materials.get("schuler").environment(SHLight(torch.zeros(9, 3)), torch.tensor([[0.0, 0, 1]]),
-                                              torch.tensor([[0.0, 0, 1]]), {})
+        m = materials.get("schuler")
+        m.environment(SHLight(torch.zeros(9, 3)), torch.tensor([[0.0, 0, 1]]), torch.tensor([[0.0, 0, 1]]),
+                      m.defaults())
 
 
 # -- gradients -------------------------------------------------------------------------------------------
