@@ -266,7 +266,8 @@ def smith_g2_correlated_ggx(nl: Tensor, nv: Tensor, alpha) -> Tensor:
 
 
 # -- geometry / visibility ------------------------------------------------------------------------------
-def visibility_term(name: str, g: Angles, alpha, distribution: str = "ggx", beckmann_lambda: str = "rational") -> Tensor:
+def visibility_term(name: str, g: Angles, alpha, distribution: str = "ggx",
+                    beckmann_lambda: str = "rational") -> Tensor:
     """V = G / (4 n·l n·v) for the geometry term ``name``, in a form that does not divide by a
     vanishing cosine (see module docstring), ``[..., 1]``; 0 unless n·l > 0 and n·v > 0.
 

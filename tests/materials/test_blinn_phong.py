@@ -195,7 +195,8 @@ def test_whole_model_gains_energy_at_grazing_view(f0, r, expected):
     Two independent quadratures agree (over l, Gauss-Legendre in n·l; over the half vector)."""
     from materials.validation import directional_albedo_half_vector
     m = materials.get("gotanda2010")
-    p = {"albedo": torch.ones(3, dtype=D64), "f0": torch.full((3,), f0, dtype=D64), "roughness": torch.tensor([r], dtype=D64)}
+    p = {"albedo": torch.ones(3, dtype=D64), "f0": torch.full((3,), f0, dtype=D64),
+         "roughness": torch.tensor([r], dtype=D64)}
     tv = math.radians(75.0)
     half = directional_albedo_half_vector(m, p, tv, 128, 256)[0].item()
     assert half == pytest.approx(expected, abs=2e-4)

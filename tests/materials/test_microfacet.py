@@ -123,7 +123,8 @@ def _beckmann_lambda_by_quadrature(cos_o: float, alpha: float) -> float:
     total = 0.0
     for lo, hi in ((0.0, a), (a, max(a, 0.0) + 12.0)):
         ts = 0.5 * (hi - lo) * (x + 1) + lo
-        total += sum(0.5 * (hi - lo) * wi * math.exp(-t * t) * t / math.pi * phi_integral(t) for t, wi in zip(ts, w))
+        total += sum(0.5 * (hi - lo) * wi * math.exp(-t * t) * t / math.pi * phi_integral(t)
+                     for t, wi in zip(ts, w, strict=True))
     return total / cos_o - 1.0
 
 
