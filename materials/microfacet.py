@@ -16,10 +16,11 @@ for D = ggx, and for D = beckmann and D = blinn-phong (Walter et al. 2007 §5.2:
 corresponds to Beckmann's α through α = √(2/(s + 2)), the inverse of our s = 2/α² − 2) the Beckmann Λ,
 in one of two forms (``beckmann_lambda``):
 
-- ``"rational"`` (default): Walter et al.'s (2007, eq 27) approximation
+- ``"rational"`` (default): the approximation Walter et al. (2007) give with their eq 27
   Λ(a) = (1 − 1.259a + 0.396a²)/(3.535a + 2.181a²) for a = 1/(α tanθ) < 1.6, else 0, one division and
   no transcendental; its G1 is within 0.32 % (absolute and relative) of the exact form (tested);
-- ``"exact"``: the closed form of the Smith integral for Beckmann slopes (Walter et al. 2007, eq 25's Λ),
+- ``"exact"``: the closed form of the Smith integral for Beckmann slopes (Walter et al. 2007: eq 27's G1 is
+  1/(1 + Λ) with this Λ),
   Λ(a) = (erf(a) − 1)/2 + exp(−a²)/(2 a √π), one erfc and one exp; tested against the defining integral
   Λ(ω) = ∫ max(0, ω·m) D(m) dω_m / cos θ − 1 by quadrature.
 
