@@ -251,7 +251,7 @@ def noise_residual(photo: Tensor, valid: Tensor) -> Tensor:
 def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[int, int], *,
                   exposure: Sequence[float] | float = 1.0, saturation: float | None = None,
                   lights: Sequence | None = None, bilinear: bool = False, dtype=None,
-                  clipped: Sequence[Tensor] | None = None) -> Observations:
+                  clipped: Sequence[Tensor] | None = None, footprints: bool = False) -> Observations:
     """Build :class:`Observations` from prepared G-buffers and the photos of the same views.
 
     Args:
@@ -269,6 +269,10 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         dtype: floating dtype of the result (default: the photos').
         clipped: optional per-view ``[H, W]`` bool masks of saturated pixels (e.g.
             :attr:`capture.dataset.Photo.saturated`), used in addition to ``saturation``.
+        footprints: the G-buffers hold sub-pixel samples (:func:`renderer.gbuffer.render_footprint`, any number
+            per pixel): each sample's ``weight`` is its G-buffer weight (its share of its pixel) and its
+            ``radiance`` its pixel's value; :func:`capture.footprint.observe_footprints` groups them into pixels.
+            The drop counts then count samples, and ``background`` is not counted.
 
     Returns:
         :class:`Observations` with the drop counts filled in.
@@ -301,7 +305,7 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         g = prep.gbuffer
         if g is None:
             raise ObservationError(f"view {vi}: Prepared has no G-buffer; call renderer.shading.prepare(gbuffer, ...)")
-        if g.supersample != 1:
+        if g.supersample != 1 and not footprints:
             raise ObservationError(f"view {vi}: observations need a G-buffer with supersample=1 (one sample per "
                                    f"pixel), got supersample={g.supersample}")
         photo = _check_image(photo, g.height, g.width, f"view {vi}")
@@ -309,7 +313,7 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         photo = photo.to(dtype=dt, device=g.position.device)
         flat = photo.reshape(-1, 3)
         n_pix = g.height * g.width
-        drops["background"] += n_pix - len(g)
+        drops["background"] += 0 if footprints else n_pix - len(g)
         pix = flat[g.pixel]                                    # [N, 3] for every hit sample
         finite = torch.isfinite(pix).all(-1)
         clipped_s = finite & ((pix >= saturation).any(-1) if saturation is not None else torch.zeros_like(finite))
@@ -358,7 +362,8 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         resid = noise_residual(torch.nan_to_num(photo / exposures[vi]), valid.reshape(g.height, g.width))
         parts.append(dict(uv=uv, n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
                           radiance=pix[keep_g] / exposures[vi], noise=resid.reshape(-1, 3)[g.pixel[keep_g]],
-                          pixel=g.pixel[keep_g], pairs=pairs, envs=envs, view=vi, size=(g.height, g.width)))
+                          pixel=g.pixel[keep_g], pairs=pairs, envs=envs, view=vi, size=(g.height, g.width),
+                          weight=g.weight[keep_g].to(dt) if footprints else torch.ones(len(keep_g), dtype=dt)))
     # concatenate views, offsetting sample indices
     offs, S = [], 0
     for p in parts:
@@ -388,7 +393,7 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         bi, bw = bilinear_weights(uv, H, W)
     return Observations(
         texel=texel_of(uv, H, W), map_size=(H, W), radiance=cat("radiance"),
-        weight=torch.ones(S, dtype=uv.dtype, device=uv.device), pair_sample=torch.cat(ps),
+        weight=cat("weight").to(uv.device), pair_sample=torch.cat(ps),
         pair_light=torch.cat(pl), angles=angles, irradiance=torch.cat(irr), view=view, pixel=cat("pixel"),
         uv=uv, n=cat("n"), v=cat("v"), bilinear_index=bi, bilinear_weight=bw,
         env_terms=[(light, torch.cat(idx)) for light, idx in envs_all.values()], drops=drops,

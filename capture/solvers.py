@@ -445,7 +445,8 @@ def moderated_misfit(chi2: Tensor, dof: Tensor, pooled: float | None) -> Tensor:
 
 
 def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor, groups, *, loss: str = "l2",
-                  delta: float = 1.0, noise=NOISE, sampling: str = "nearest") -> tuple[Tensor, Tensor, Tensor]:
+                  delta: float = 1.0, noise=NOISE, sampling: str = "nearest",
+                  footprints=None) -> tuple[Tensor, Tensor, Tensor]:
     """Marginal posterior standard deviation of every parameter column in every texel.
 
     Gauss-Newton at the solution: with ``J`` the Jacobian of the predicted radiance with respect
@@ -464,6 +465,10 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
     ``sampling="bilinear"``: each sample reads four texels; the texel's block of the normal matrix
     is ``Σ_s w_sk² J_sᵀ W J_s`` (neighbours held fixed — a lower bound on the joint variance).
 
+    ``footprints`` (:class:`capture.footprint.PixelFootprints`): the residuals are the photos' pixels and the
+    texel's block is ``Σ_i C_itᵀ W_i C_it`` through the footprint operator (:class:`PixelOperator`); a pixel's χ²
+    and residual count go to its texels by their shares. ``pred`` is then per pixel ``[R, 3]``.
+
     Args:
         canon: ``[T, P]`` canonical parameters (packed in :class:`Layout` order).
 
@@ -473,6 +478,17 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
     _check_noise(noise)
     T, P = canon.shape
     with torch.no_grad():
+        if footprints is not None:
+            op = PixelOperator(footprints, T)
+            pred, C = op.linearise(model, layout, canon, groups)
+            y = op.y
+            r = y - pred
+            w = _irls(r, loss, delta) / noise_sigma(y, noise).square()
+            _, A = op.normal(C, w, w * r)
+            chi_e = (w * r * r).sum(-1)[op.e_pix] * op.e_share
+            chi = op.tex_op @ chi_e
+            nres = op.tex_op @ (3.0 * op.e_share)
+            return _posterior_tail(A, chi, nres, obs, noise, P, y.device) + (pred,)
         if sampling == "bilinear":
             idx, bw = obs.bilinear_index, obs.bilinear_weight.to(ACC)
             per = (canon[idx] * bw[..., None]).sum(-2)
@@ -496,8 +512,16 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
             S_sq_t = _sampling_operator(idx, bw.square(), T, forward=False)[1]
             A = (S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)
             chi, nres = (S_t @ per_sample).unbind(-1)
+    return _posterior_tail(A, chi, nres, obs, noise, P, y.device) + (pred,)
+
+
+def _posterior_tail(A: Tensor, chi: Tensor, nres: Tensor, obs: Observations, noise, P: int,
+                    device) -> tuple[Tensor, Tensor]:
+    """``(std [T, P], observed [T])`` from the per-texel information blocks ``A [T, P, P]``, χ² and residual counts
+    (:func:`posterior_std`)."""
+    with torch.no_grad():
         observed = nres > 0
-        eye = torch.eye(P, dtype=ACC, device=y.device)
+        eye = torch.eye(P, dtype=ACC, device=device)
         dmax = torch.diagonal(A, dim1=-2, dim2=-1).amax(-1).clamp_min(1e-30)
         A = A + (1e-12 * dmax)[:, None, None] * eye
         A = torch.where(observed[:, None, None], A, eye)
@@ -509,12 +533,12 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
                            moderated_misfit(chi, nres - P, photo_noise_ratio(obs, noise)))
         std = (var * s2[:, None]).sqrt()
         std = torch.where(observed[:, None], std, torch.full_like(std, math.inf))
-    return std, observed, pred
+    return std, observed
 
 
 def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, groups, *, loss: str, delta: float,
               observable_std, noise, history: list[float], iterations: int, t0: float, solver: str,
-              info: dict, sampling: str = "nearest", keep_unobservable: bool = False) -> FitResult:
+              info: dict, sampling: str = "nearest", keep_unobservable: bool = False, footprints=None) -> FitResult:
     """Posterior std, observability, pull-push filling → :class:`FitResult`.
 
     ``keep_unobservable``: the values of observed but unobservable texels are estimates worth keeping
@@ -529,7 +553,13 @@ def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, gr
     params_acc = layout.unpack(theta)
     canon = torch.cat([params_acc[s.name] for s in layout.specs], -1)
     std, observed, _ = posterior_std(model, layout, obs, canon, groups, loss=loss, delta=delta, noise=noise,
-                                     sampling=sampling)
+                                     sampling=sampling, footprints=footprints)
+    resolved = None
+    if footprints is not None:
+        # through the footprint operator the block std holds the neighbours fixed: a texel every pixel mixes
+        # with its neighbours is not determined by the data alone, however small that std
+        resolved = PixelOperator(footprints, H * W).dominance() >= RESOLVED_SHARE
+        info["resolved_fraction"] = float(resolved[observed].float().mean()) if bool(observed.any()) else 0.0
     info["posterior_s"] = time.perf_counter() - t_post
     params = layout.unpack(theta.detach().to(obs.dtype))
     maps, unobs, filled, conf, ratio = {}, {}, {}, {}, {}
@@ -539,6 +569,8 @@ def _finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, gr
         thr = std_threshold(s, observable_std)
         sp = std[:, sl].amax(-1) / thr
         bad = observed & ~(sp < 1.0)
+        if resolved is not None:
+            bad = bad | (observed & ~resolved)
         val = params[s.name].reshape(H, W, s.channels)
         known = (observed if keep_unobservable else observed & ~bad).reshape(H, W)
         fill_val = pull_push(val, known) if bool(known.any()) else s.full((H, W), device=val.device, dtype=val.dtype)
@@ -875,7 +907,8 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
                observable_std: float | Mapping[str, float] | None = None, noise=NOISE, reproject: int = 0,
                sampling: str = "nearest", joint_iterations: int | None = None, cg_iterations: int | None = None,
                fill_before_joint: bool = True, share: bool | None = None, candidates: int = 8, sharing: float = 1.0,
-               sharing_albedo: bool = True, anchor_weight: float = 0.03, pooled: int = 0,
+               sharing_albedo: bool = True, anchor_weight: float = 0.03, pooled: int = 0, footprints=None,
+               footprint_iterations: int | None = None,
                progress: Callable[[str, int, float], None] | None = None) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
@@ -954,6 +987,13 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             the GGX + Lambert scenes there. A second one: seeded from scarce anchors, materials whose refinement misses
             the photos by more than their noise allows are seeded again from more texels, and the photos judge
             (:data:`ANCHOR_RETRY_FACTOR`, ``info["share_retry"]``).
+        footprints: :class:`capture.footprint.PixelFootprints` of the same photos: after the stages above (which
+            treat each pixel as one ray through its centre and give the starting maps), ``footprint_iterations``
+            more joint LM steps fit the photos' *pixels* as area averages of their sub-pixel samples
+            (:func:`refine_joint` with ``footprints``), with the same prior; the posterior std and the
+            observability are then judged through the footprint operator (:func:`posterior_std`). None = the
+            pixel-centre model only (photos the fit's own pixel-centre renderer made).
+        footprint_iterations: LM steps of that final solve (default :data:`FOOTPRINT_STEPS`).
         sharing_albedo: the joint refinement's prior links neighbouring texels' albedo too (default; see
             :func:`refine_joint` for the measurements). Where the photos determine a texel's albedo the data win;
             where they barely do (texels read only through a neighbour's bilinear footprint, the grazing band) it
@@ -1225,9 +1265,20 @@ def solve_fast(model: Model, obs: Observations, *, loss: str = "l2", delta: floa
             theta, jinfo = joint_from(theta)
         info.update(jinfo)
         history.append(jinfo["joint_history"][-1])
+    if footprints is not None:
+        steps = FOOTPRINT_STEPS if footprint_iterations is None else int(footprint_iterations)
+        if steps > 0:
+            theta, finfo = refine_joint(model, obs, layout, theta, groups, loss=loss, delta=delta, iterations=steps,
+                                        cg_iterations=cg_iterations if cg_iterations is not None else 30,
+                                        sharing=sharing if share else 0.0, progress=progress,
+                                        sharing_params=None if sharing_albedo else _shared_default(layout),
+                                        noise=noise, noise_adaptive=("albedo",),
+                                        anchor_weight=anchor_weight if share else 0.0, footprints=footprints)
+            info.update({f"footprint_{k.removeprefix('joint_')}": v for k, v in finfo.items()})
+            history.append(finfo["joint_history"][-1])
     return _finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,
                      noise=noise, history=history, iterations=it, t0=t0, solver="fast", info=info,
-                     sampling=sampling, keep_unobservable=share)
+                     sampling=sampling, keep_unobservable=share, footprints=footprints)
 
 
 # -- joint refinement with the bilinear footprint -------------------------------------------------
@@ -1390,6 +1441,17 @@ class _SharingPrior:
         return self._full(acc * scale)
 
 
+#: Joint LM steps of the final solve on the photos' pixel footprints (:func:`solve_fast` ``footprints``). It starts
+#: from the pixel-centre solution, which is close wherever texels are larger than pixels, so a few steps converge;
+#: each is stopped early when the cost drops by less than 1e-6 (relative).
+FOOTPRINT_STEPS = 6
+
+#: A texel is *resolved* by the photos when some kept pixel takes at least this share of its value from it. A
+#: texel covering exactly one pixel, centred, has the share (∫ over the pixel of its bilinear tent)² = 0.75² = 0.56;
+#: below 0.5 every pixel that reads it mixes it with neighbours at least as much, and the data alone do not tell it
+#: from them — its value is the prior's (neighbours, material), flagged unobservable.
+RESOLVED_SHARE = 0.5
+
 #: Trial steps per outer iteration of :func:`refine_joint`, the damping λ growing ×4 after each rejected one
 #: (from ≥ 1e-9 up to ≥ 1e-3·4¹¹ ≈ 4 000 × the diagonal). With 4 (until session 7) a scene whose first step needed
 #: λ ≈ 0.26 never moved: the small fixed-rig scene (96 px, 32² maps) kept the sharing's proposal, all-texel albedo /
@@ -1413,13 +1475,107 @@ def _sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True
     return fwd, bwd
 
 
+def _csr(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, shape).coalesce().to_sparse_csr()
+
+
+class PixelOperator:
+    """The sparse pixel × texel operator of :class:`capture.footprint.PixelFootprints`, built once.
+
+    A pixel's prediction is ``Σ_{s ∈ i} a_s L(p_s)`` with ``p_s = Σ_k w_sk p_k`` the bilinear read of sample s
+    (share ``a_s``). Linearised at the current maps, pixel i depends on texel t through the block
+    ``C_it = Σ_{s ∈ i, k: idx_sk = t} a_s w_sk J_s`` (3 × P, ``J_s`` the sample's Jacobian with respect to its
+    canonical parameters): one *entry* per (pixel, texel) pair the footprints touch, stored flat
+    (``e_pix``, ``e_tex``). The Gauss-Newton matrix-vector product is then two gathers, two batched 3 × P
+    products and two sparse sums (CSR), never the P·T × P·T matrix; the per-texel P × P blocks
+    ``Σ_i C_itᵀ W_i C_it`` (the preconditioner, and the posterior's information) are exact.
+    """
+
+    def __init__(self, fp, T: int):
+        so = fp.samples
+        if so.bilinear_index is None:
+            raise SolverError("pixel footprints need bilinear sample weights (observe_footprints builds them)")
+        self.fp, self.T = fp, T
+        self.R, S = fp.n_pixels, so.n_samples
+        idx, bw = so.bilinear_index, so.bilinear_weight.to(ACC)
+        self.coef = bw * fp.share.to(ACC)[:, None]                                  # [S, 4]
+        key = fp.group[:, None] * T + idx
+        ekey, e_of = torch.unique(key.reshape(-1), return_inverse=True)
+        self.e_of = e_of.reshape(S, -1)
+        self.e_pix, self.e_tex = ekey // T, ekey % T
+        E = int(ekey.numel())
+        self.E = E
+        ar = torch.arange(E, device=idx.device)
+        ones = torch.ones(E, dtype=ACC, device=idx.device)
+        self.pix_op = _csr(self.e_pix, ar, ones, (self.R, E))                        # entries → pixels
+        self.tex_op = _csr(self.e_tex, ar, ones, (T, E))                             # entries → texels
+        s_ar = torch.arange(S, device=idx.device)
+        # sample-corner → entry, one operator per bilinear corner (4 sparse products instead of one [4S, 3P] copy)
+        self.corner_ops = [_csr(self.e_of[:, j], s_ar, self.coef[:, j], (E, S)) for j in range(idx.shape[1])]
+        self.gather_op, _ = _sampling_operator(idx, bw, T)
+        self.group_op = _csr(fp.group, s_ar, fp.share.to(ACC), (self.R, S))          # samples → pixels
+        # each entry's share of its pixel (Σ over a pixel's entries = 1): how much of the pixel the texel is
+        self.e_share = torch.zeros(E, dtype=ACC, device=idx.device).index_add_(0, self.e_of.reshape(-1),
+                                                                                self.coef.reshape(-1))
+        self.y = fp.radiance.to(ACC)
+
+    def observed(self) -> Tensor:
+        """``[T]`` bool: texels some kept pixel reads with a positive weight."""
+        seen = torch.zeros(self.T, dtype=torch.bool, device=self.y.device)
+        seen[self.e_tex[self.e_share > 0]] = True
+        return seen
+
+    def dominance(self) -> Tensor:
+        """``[T]`` the largest share any kept pixel takes from each texel (0 where none reads it)."""
+        return torch.zeros(self.T, dtype=ACC, device=self.y.device).scatter_reduce(
+            0, self.e_tex, self.e_share, "amax", include_self=True)
+
+    def predict(self, model: Model, layout: Layout, canon: Tensor) -> Tensor:
+        """Pixel predictions ``[R, 3]`` of canonical texel parameters ``canon [T, P]``."""
+        so = self.fp.samples
+        with torch.no_grad():
+            rad = so.predict(model, layout.split((self.gather_op @ canon).to(so.dtype))).to(ACC)
+        return self.group_op @ rad
+
+    def linearise(self, model: Model, layout: Layout, canon: Tensor, groups) -> tuple[Tensor, Tensor]:
+        """``(pred [R, 3], C [E, 3, P])`` at ``canon [T, P]``."""
+        P = canon.shape[1]
+        pred_s, J = _jacobian(model, layout, self.fp.samples, self.gather_op @ canon, groups, canonical=True)
+        Jf = J.reshape(J.shape[0], 3 * P)
+        C = sum(op @ Jf for op in self.corner_ops).reshape(self.E, 3, P)
+        return self.group_op @ pred_s, C
+
+    def normal(self, C: Tensor, w: Tensor, wr: Tensor) -> tuple[Tensor, Tensor]:
+        """``(Jᵀ W r [T, P], blocks Σ_i C_itᵀ W_i C_it [T, P, P])`` with residual weights ``w [R, 3]`` and
+        ``wr = w·r [R, 3]``."""
+        P = C.shape[-1]
+        g = self.tex_op @ torch.einsum("ecp,ec->ep", C, wr[self.e_pix])
+        B = (self.tex_op @ torch.einsum("ecp,ec,ecq->epq", C, w[self.e_pix], C).reshape(self.E, P * P))
+        return g, B.reshape(self.T, P, P)
+
+    def apply(self, C: Tensor, u: Tensor) -> Tensor:
+        """``J u`` ``[R, 3]`` for texel updates ``u [T, P]``."""
+        return self.pix_op @ torch.bmm(C, u[self.e_tex][:, :, None])[..., 0]
+
+    def apply_t(self, C: Tensor, v: Tensor) -> Tensor:
+        """``Jᵀ v`` ``[T, P]`` for pixel values ``v [R, 3]``."""
+        return self.tex_op @ torch.bmm(v[self.e_pix][:, None, :], C)[:, 0]
+
+
 def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor, groups, *, loss: str, delta: float,
                  iterations: int = 4, cg_iterations: int = 25, sampling: str = "bilinear",
                  sharing: float = 0.0, sharing_params: Sequence[str] | None = None, sharing_delta: float = 0.3,
                  noise=NOISE, noise_adaptive: Sequence[str] = (), anchor_weight: float = 0.0,
-                 anchor_delta: float = 1.0,
+                 anchor_delta: float = 1.0, footprints=None,
                  progress: Callable[[str, int, float], None] | None = None) -> tuple[Tensor, dict]:
     """Levenberg-Marquardt over *all* texels at once with the true (bilinear) sampling footprint.
+
+    ``footprints`` (:class:`capture.footprint.PixelFootprints`): the residuals are the photos' *pixels*, each the
+    area average of its sub-pixel samples' radiance (:class:`PixelOperator`), instead of one sample per pixel
+    centre; ``obs`` then only supplies the photos' measured noise for the noise-adaptive prior. Everything else —
+    the prior, the damping, the PCG — is the same.
 
     With bilinear sampling a sample reads ``Σ_k w_sk p_k`` of four texels, so texels are coupled
     and the per-texel solve is only an approximation. Starting from it, each outer iteration
@@ -1495,16 +1651,18 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     else:
         idx, bw = obs.texel[:, None], torch.ones(obs.n_samples, 1, dtype=ACC, device=obs.device)
     T, P = theta.shape
-    y = obs.radiance.to(ACC)
-    n_res = float(3 * obs.weight.to(ACC).sum())
+    pix = PixelOperator(footprints, T) if footprints is not None else None
+    y = pix.y if pix is not None else obs.radiance.to(ACC)
+    n_res = float(3 * pix.R) if pix is not None else float(3 * obs.weight.to(ACC).sum())
     eye = torch.eye(P, dtype=ACC, device=theta.device)
 
     # the sampling operator as sparse CSR matrices (K non-zeros per row): per-sample values are
     # S_op @ x, the transpose scatters back. Measured on the default scene (204 000 samples, 65 536
     # texels, P = 7, 2 threads): 4.9 ms and 2.6 ms against 112 ms and 28 ms for gather + weighted sum
     # and K index_adds
-    S_op, S_t = _sampling_operator(idx, bw, T)
-    S_sq_t = _sampling_operator(idx, bw.square(), T, forward=False)[1]
+    if pix is None:
+        S_op, S_t = _sampling_operator(idx, bw, T)
+        S_sq_t = _sampling_operator(idx, bw.square(), T, forward=False)[1]
 
     def gather(x):                                  # [T, P] → per-sample [S, P]
         return S_op @ x
@@ -1518,6 +1676,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
 
     def cost_of(th):
         with torch.no_grad():
+            if pix is not None:
+                return float(robust_rho(y - pix.predict(model, layout, canon_of(th)), loss, delta).sum())
             return _weighted_cost(obs, obs.predict(model, layout.split(gather(canon_of(th)).to(obs.dtype))), loss,
                                   delta)
 
@@ -1531,7 +1691,9 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     prior = None
     if sharing > 0:
         H, W = obs.map_size
-        if sampling == "bilinear":
+        if pix is not None:
+            observed = pix.observed()
+        elif sampling == "bilinear":
             observed = obs.footprint()
         else:
             observed = torch.zeros(T, dtype=torch.bool, device=theta.device)
@@ -1560,7 +1722,10 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
         with torch.no_grad():
             canon = canon_of(theta)
             dp = layout.dcanonical(theta)
-            pred, J = _jacobian(model, layout, obs, gather(canon), groups, canonical=True)
+            if pix is not None:
+                pred, J = pix.linearise(model, layout, canon, groups)       # J: the entries' blocks C [E, 3, P]
+            else:
+                pred, J = _jacobian(model, layout, obs, gather(canon), groups, canonical=True)
             r = y - pred
             if prior is not None and adapt and it >= 1:
                 # the photos' noise against the noise model, from the residuals of the bilinear fit so far (at
@@ -1570,11 +1735,16 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                 prior.set_units({n: base_units[n] / max(1.0, ratio) for n in adapt})
                 noise_ratios.append(ratio)
                 cost = total_of(theta)
-            w = obs.weight.to(ACC)[:, None] * _irls(r, loss, delta)                    # [S, 3]
-            g = scatter(torch.einsum("scp,sc->sp", J, w * r)) * dp                      # JᵀWr in θ
-            JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)
-            B = (S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)                 # Σ_s w_sk² J_sᵀWJ_s
-            del JWJ
+            if pix is not None:
+                w = _irls(r, loss, delta)                                             # [R, 3]
+                g, B = pix.normal(J, w, w * r)                                        # exact per-texel blocks
+                g = g * dp
+            else:
+                w = obs.weight.to(ACC)[:, None] * _irls(r, loss, delta)                # [S, 3]
+                g = scatter(torch.einsum("scp,sc->sp", J, w * r)) * dp                  # JᵀWr in θ
+                JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)
+                B = (S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)             # Σ_s w_sk² J_sᵀWJ_s
+                del JWJ
             if prior is not None:
                 if it == 0:
                     # μ in units of the data term: its curvature for a one-threshold change of a material
@@ -1596,10 +1766,13 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             diag = diag + 1e-9 * diag.mean(-1, keepdim=True).clamp_min(1e-30)
 
             def matvec(v, lam_, dp=dp, J=J, w=w, live=live, diag=diag):
-                # J_sᵀ W_s J_s u_s as two batched products (bmm: 5.4 ms against 9.4 ms for einsum, S = 204 000)
-                u = gather(v * dp)                                                    # [S, P]
-                ju = torch.bmm(J, u[:, :, None])[..., 0] * w                           # [S, 3]
-                out = scatter(torch.bmm(ju[:, None, :], J)[:, 0]) * dp
+                if pix is not None:
+                    out = pix.apply_t(J, w * pix.apply(J, v * dp)) * dp
+                else:
+                    # J_sᵀ W_s J_s u_s as two batched products (bmm: 5.4 ms against 9.4 ms for einsum, S = 204 000)
+                    u = gather(v * dp)                                                # [S, P]
+                    ju = torch.bmm(J, u[:, :, None])[..., 0] * w                       # [S, 3]
+                    out = scatter(torch.bmm(ju[:, None, :], J)[:, 0]) * dp
                 if prior is not None:
                     out = out + prior.matvec(v, dp)
                 return torch.where(live[:, None], out + lam_ * diag * v, v)
@@ -1648,7 +1821,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
         if len(history) > 1 and history[-2] - history[-1] <= 1e-6 * history[-2]:
             break
     out = {"joint_s": time.perf_counter() - t0, "joint_history": history, "joint_accepted": accepted,
-           "joint_sampling": sampling, "joint_data_cost": cost_of(theta) / n_res}
+           "joint_sampling": "footprint" if pix is not None else sampling, "joint_data_cost": cost_of(theta) / n_res}
     if adapt:   # the ratios measured (none when the refinement stopped after one iteration) and the final units
         out["noise_ratio"] = noise_ratios
         out["prior_units"] = {n: float(prior.thr[prior.col_names.index(n)]) for n in adapt}

@@ -1,0 +1,322 @@
+"""Pixel footprints: how a camera forms a pixel, as the fit models it.
+
+A camera pixel integrates the radiance over its square (a box filter, DESIGN.md "Data flow"); a photo's pixel is
+the *area average* of the radiance over its footprint on the surface, not the radiance at the point its centre
+sees. Where a pixel covers several texels (a texture seen from far or at a grazing angle) the two differ by the
+texture's variation inside the pixel — the difference between fitting photos and fitting the fit's own
+one-ray-per-pixel renders.
+
+:func:`observe_footprints` builds, for every view, the valid pixels and their sub-pixel samples:
+
+1. From the pixel-centre G-buffer, each pixel's **texel footprint** ``f``: the larger of the lengths of the
+   texture-space derivatives ``∂(u·W_map, v·H_map)/∂x`` and ``/∂y`` (texels per pixel step), by central
+   differences of the centre rays' UVs (one-sided where a neighbour leaves the surface).
+2. A **sample count** per pixel: ``k × k`` rays at the centres of a regular grid of strata over the pixel
+   (:func:`renderer.gbuffer.render_footprint`, the midpoint rule of the box filter's integral), with ``k`` the
+   larger of two needs, capped at :data:`FOOTPRINT_MAX`:
+
+   * the texture: ``ceil(f / FOOTPRINT_SPACING)``, so that neighbouring samples are at most
+     :data:`FOOTPRINT_SPACING` texels apart. A pixel much smaller than a texel needs one ray: the maps are read
+     bilinearly, and the box average of a bilinear interpolant over a square inside one bilinear cell is its
+     value at the square's centre, exactly;
+   * the shading (highlights, falloff, shadow edges, which vary inside a pixel even on a uniform material): the
+     midpoint rule with k × k points errs by about ``c / (24 k²)`` of the pixel's value, ``c`` its relative second
+     difference across the pixel, read off the photo itself (``max(|I(x+1) + I(x−1) − 2 I(x)|, same in y) / I``),
+     so ``ceil(sqrt(c / (24 · FOOTPRINT_TOLERANCE)))``.
+
+   Pixels on silhouettes, UV seams or depth edges (a neighbour misses, jumps in UV by more than
+   :data:`SEAM_TEXELS` texels or in depth) take :data:`FOOTPRINT_MAX`.
+3. A pixel is **kept** when every one of its rays hits the object facing the camera (a silhouette pixel is
+   partly background, whose radiance the fit does not know), and its photo value is finite and not clipped.
+   Rays that no light reaches stay in the pixel with radiance 0 (a shadow edge inside a pixel).
+
+The result holds the kept samples as :class:`capture.observations.Observations` (bilinear texel weights, every
+(sample, light) pair computed once) plus the sample → pixel grouping and each sample's share ``1/k²`` of its
+pixel: a sparse pixel × texel operator ``pixel_i = Σ_{s ∈ i} share_s · L(maps at uv_s)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from materials.model import Model
+
+from .observations import ObservationError, Observations, noise_residual, observe_views
+
+__all__ = ["PixelFootprints", "observe_footprints", "footprint_counts", "FOOTPRINT_SPACING", "FOOTPRINT_MAX",
+           "SEAM_TEXELS"]
+
+#: Largest distance (texels) between neighbouring sub-pixel samples: half a texel, so that every texel a pixel
+#: covers is read by some sample, and the bilinear interpolant's kinks (at texel centres) are bracketed.
+FOOTPRINT_SPACING = 0.5
+#: Largest k (k × k samples per pixel). 4 × 4 resolves footprints up to 2 texels per pixel at the spacing above;
+#: larger footprints are sampled more coarsely — such texels are below what the photos resolve, and the fit's
+#: smoothness prior decides them (the confidence maps say so).
+FOOTPRINT_MAX = 4
+#: Relative error of a pixel's midpoint-rule average that the shading need may leave (module docstring): 0.1 %,
+#: below the 1 % photo noise the solver's noise model assumes.
+FOOTPRINT_TOLERANCE = 1e-3
+#: A UV jump between neighbouring pixels larger than this many texels marks a seam (the pixel straddles two
+#: charts): its footprint is not measured by finite differences and it takes :data:`FOOTPRINT_MAX` samples.
+SEAM_TEXELS = 8.0
+#: Relative depth jump between neighbouring pixel centres that marks an occlusion edge (sampled at the maximum).
+DEPTH_EDGE = 0.05
+
+
+@dataclass
+class PixelFootprints:
+    """The valid pixels of the fitted views, each the area average of its sub-pixel samples.
+
+    Attributes:
+        samples: :class:`Observations` of the sub-pixel samples (S of them; ``samples.radiance`` holds each
+            sample's pixel value, ``samples.bilinear_index/weight`` its texels).
+        group: ``[S]`` int64 index of each sample's pixel among the R kept pixels.
+        share: ``[S]`` the sample's share of its pixel (``1/k²``; a pixel's shares sum to 1).
+        radiance: ``[R, 3]`` measured linear radiance of each kept pixel.
+        view, pixel: ``[R]`` int64 view index and flat pixel index ``y·W + x`` of each kept pixel.
+        counts: ``[R]`` int64 samples per pixel (k²).
+        noise_residual: ``[R, 3]`` image-space noise residual of each pixel (NaN near edges), as in
+            :class:`Observations`.
+        footprint_texels: ``[R]`` measured texel footprint ``f`` of each pixel (texels per pixel step).
+        drops: sub-pixel samples dropped per reason (``samples_<reason>``, the reasons of
+            :data:`capture.observations.DROP_REASONS`; an unlit sample stays in its pixel's average with radiance
+            0, only its evaluation is skipped) and ``partial_pixels``: pixels some ray of which missed the object
+            or saw its back (silhouettes), dropped whole.
+        cast_rays: rays cast for the kept and dropped footprints together; uniform_rays: rays a uniform
+            :data:`FOOTPRINT_MAX`² per pixel would have cast on the same pixels (the saving of the adaptive count).
+    """
+
+    samples: Observations
+    group: Tensor
+    share: Tensor
+    radiance: Tensor
+    view: Tensor
+    pixel: Tensor
+    counts: Tensor
+    noise_residual: Tensor
+    footprint_texels: Tensor
+    drops: dict
+    cast_rays: int = 0
+    uniform_rays: int = 0
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.radiance.shape[0])
+
+    @property
+    def n_samples(self) -> int:
+        return self.samples.n_samples
+
+    @property
+    def map_size(self) -> tuple[int, int]:
+        return self.samples.map_size
+
+    @property
+    def device(self) -> torch.device:
+        return self.radiance.device
+
+    def predict(self, model: Model, maps_flat: Tensor | dict, split=None) -> Tensor:
+        """Predicted pixel radiance ``[R, 3]``: ``Σ_{s ∈ i} share_s · L_s`` with ``L_s`` the model's radiance at
+        sample s from per-sample canonical parameters (a dict ``name → [S, C]``)."""
+        rad = self.samples.predict(model, maps_flat)
+        return torch.zeros(self.n_pixels, 3, dtype=rad.dtype, device=rad.device).index_add(
+            0, self.group, rad * self.share.to(rad.dtype)[:, None])
+
+    def render(self, model: Model, maps: dict) -> Tensor:
+        """Predicted pixel radiance ``[R, 3]`` of maps ``name → [H, W, C]`` (bilinear reads)."""
+        return self.predict(model, self.samples.per_sample(maps, "bilinear"))
+
+    def images(self, values: Tensor, view: int, size: tuple[int, int]) -> tuple[Tensor, Tensor]:
+        """Per-pixel values ``[R, C]`` of one view as an image ``[H, W, C]`` (0 elsewhere) and its mask."""
+        H, W = size
+        sel = self.view == view
+        img = torch.zeros(H * W, values.shape[-1], dtype=values.dtype, device=values.device)
+        img[self.pixel[sel]] = values[sel]
+        mask = torch.zeros(H * W, dtype=torch.bool, device=values.device)
+        mask[self.pixel[sel]] = True
+        return img.reshape(H, W, -1), mask.reshape(H, W)
+
+    def select_views(self, views: Sequence[int]) -> PixelFootprints:
+        """Only the pixels (and their samples) of the given view indices."""
+        v = torch.as_tensor(list(views), dtype=torch.long, device=self.device)
+        return self.select(torch.isin(self.view, v))
+
+    def select(self, keep: Tensor) -> PixelFootprints:
+        """Only the pixels where ``keep [R]`` (bool) holds, with their samples."""
+        if keep.dtype != torch.bool or keep.shape != (self.n_pixels,):
+            raise ObservationError(f"select: keep must be a bool tensor [{self.n_pixels}], got {keep.dtype} "
+                                   f"{tuple(keep.shape)}")
+        keep_s = keep[self.group]
+        new = torch.full((self.n_pixels,), -1, dtype=torch.long, device=self.device)
+        new[keep] = torch.arange(int(keep.sum()), device=self.device)
+        return PixelFootprints(
+            samples=self.samples.select(keep_s), group=new[self.group[keep_s]], share=self.share[keep_s],
+            radiance=self.radiance[keep], view=self.view[keep], pixel=self.pixel[keep],
+            counts=self.counts[keep], noise_residual=self.noise_residual[keep],
+            footprint_texels=self.footprint_texels[keep], drops=dict(self.drops), cast_rays=self.cast_rays,
+            uniform_rays=self.uniform_rays)
+
+
+def _grad_len(uv: Tensor, hit: Tensor, depth: Tensor, map_size: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """Texel footprint ``[H, W]`` of every pixel and a mask of edge pixels (silhouette, seam or depth edge)."""
+    Hm, Wm = map_size
+    t = torch.stack([uv[..., 0] * Wm, (1.0 - uv[..., 1]) * Hm], -1)                    # texel coordinates [H, W, 2]
+    edge = torch.zeros_like(hit)
+
+    def deriv(axis: int) -> Tensor:
+        # central difference where both neighbours are on the surface, one-sided where one is, 0 where none is
+        fwd = torch.roll(t, -1, axis) - t
+        bwd = t - torch.roll(t, 1, axis)
+        hf = torch.roll(hit, -1, axis)
+        hb = torch.roll(hit, 1, axis)
+        n = t.shape[axis]
+        idx = torch.arange(n, device=t.device)
+        last = (idx == n - 1) if axis == 1 else (idx == n - 1)[:, None]
+        first = (idx == 0) if axis == 1 else (idx == 0)[:, None]
+        hf = hf & ~last
+        hb = hb & ~first
+        dfw, dbw = fwd.norm(dim=-1), bwd.norm(dim=-1)
+        seam = (hf & (dfw > SEAM_TEXELS)) | (hb & (dbw > SEAM_TEXELS))
+        zf = torch.roll(depth, -1, axis)
+        zb = torch.roll(depth, 1, axis)
+        jump = (hf & ((zf - depth).abs() > DEPTH_EDGE * depth)) | (hb & ((zb - depth).abs() > DEPTH_EDGE * depth))
+        both = hf & hb
+        d = torch.where(both, 0.5 * (dfw + dbw), torch.where(hf, dfw, torch.where(hb, dbw, torch.zeros_like(dfw))))
+        nonlocal edge
+        edge = edge | seam | jump | ~hf | ~hb
+        return d
+
+    f = torch.maximum(deriv(1), deriv(0))
+    return f, edge & hit
+
+
+def _curvature(photo: Tensor) -> Tensor:
+    """``[H, W]`` relative second difference of a photo ``[H, W, 3]`` across each pixel (module docstring), the
+    largest over x, y and the channels; 0 where a neighbour is missing or non-finite."""
+    img = torch.nan_to_num(photo.to(torch.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    ref = img.abs().amax(-1, keepdim=True).clamp_min(1e-6 * max(float(img.abs().max()), 1e-30))
+    c = torch.zeros(img.shape[:2], dtype=torch.float64)
+    dxx = (img[:, 2:] + img[:, :-2] - 2 * img[:, 1:-1]).abs() / ref[:, 1:-1]
+    dyy = (img[2:] + img[:-2] - 2 * img[1:-1]).abs() / ref[1:-1]
+    c[:, 1:-1] = torch.maximum(c[:, 1:-1], dxx.amax(-1))
+    c[1:-1] = torch.maximum(c[1:-1], dyy.amax(-1))
+    return c
+
+
+def footprint_counts(gbuffer, map_size: tuple[int, int],
+                     photo: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Per pixel of a pixel-centre G-buffer: the texel footprint ``f``, the sample count ``k`` and a hit mask.
+
+    Returns ``(pixels [M], k [M], f [M])`` for the M pixels whose centre ray hits the object, plus the pixels
+    next to them (a pixel whose centre misses may still be partly covered; it is cast at :data:`FOOTPRINT_MAX`
+    so that the coverage test sees it, and dropped as partial)."""
+    H, W = gbuffer.height, gbuffer.width
+    hit = torch.zeros(H * W, dtype=torch.bool)
+    uv = torch.zeros(H * W, 2, dtype=torch.float64)
+    depth = torch.zeros(H * W, dtype=torch.float64)
+    hit[gbuffer.pixel] = True
+    uv[gbuffer.pixel] = gbuffer.uv.to(torch.float64)
+    depth[gbuffer.pixel] = gbuffer.depth.to(torch.float64)
+    hit2 = hit.reshape(H, W)
+    f, edge = _grad_len(uv.reshape(H, W, 2), hit2, depth.reshape(H, W), map_size)
+    k = torch.ceil(f / FOOTPRINT_SPACING)
+    if photo is not None:
+        k = torch.maximum(k, torch.ceil(torch.sqrt(_curvature(photo) / (24.0 * FOOTPRINT_TOLERANCE))))
+    k = k.clamp(1, FOOTPRINT_MAX).long()
+    k = torch.where(edge, torch.full_like(k, FOOTPRINT_MAX), k)
+    # a pixel next to a hit pixel but missing at its centre may be partly covered: cast it too (dropped later as
+    # partial) — only so that no partly covered pixel is kept as a full one, which it never is (its own rays miss)
+    near = F.max_pool2d(hit2[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+    cast = (hit2 | near).reshape(-1)
+    kk = torch.where(hit, k.reshape(-1), torch.ones_like(k.reshape(-1)))
+    pixels = torch.nonzero(cast).squeeze(-1)
+    return pixels, kk[pixels], f.reshape(-1)[pixels]
+
+
+def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centre_gbuffers: Sequence,
+                       photos: Sequence[Tensor], map_size: tuple[int, int], *, lights: Sequence | None = None,
+                       clipped: Sequence[Tensor] | None = None, dtype=None, shadows: bool = True) -> PixelFootprints:
+    """The pixel footprints of every view (module docstring).
+
+    Args:
+        mesh: the object; cameras: one :class:`renderer.camera.Camera` per view; lights_per_view: each view's
+            lights; centre_gbuffers: each view's pixel-centre G-buffer (``render_gbuffer(mesh, camera, 1)``).
+        photos: per view the linear photo ``[H, W, 3]`` in radiance units (exposure divided out).
+        map_size: ``(H, W)`` of the maps. lights: the scene's point/directional lights in order (see
+            :func:`capture.observations.observe_views`). clipped: per view ``[H, W]`` saturated-pixel masks.
+
+    Raises:
+        ObservationError: mismatched lists or no valid pixel in any view.
+    """
+    from renderer.gbuffer import render_footprint
+    from renderer.shading import prepare
+
+    n = len(cameras)
+    if not (len(lights_per_view) == len(centre_gbuffers) == len(photos) == n) or n == 0:
+        raise ObservationError(f"observe_footprints: need one camera, light list, centre G-buffer and photo per "
+                               f"view, got {n}, {len(lights_per_view)}, {len(centre_gbuffers)}, {len(photos)}")
+    preps, fps, counts, pix_lists, cast, uniform, partial = [], [], [], [], 0, 0, 0
+    for vi in range(n):
+        pixels, k, f = footprint_counts(centre_gbuffers[vi], map_size, photos[vi])
+        g = render_footprint(mesh, cameras[vi], pixels, k)
+        cast += int((k * k).sum())
+        # a pixel is whole when all its rays hit the object facing the camera
+        facing = (g.normal * g.view).sum(-1) > 0
+        HW = g.height * g.width
+        covered = torch.zeros(HW, dtype=torch.float64).index_add(0, g.pixel, g.weight.double() * facing.double())
+        whole = torch.zeros(HW, dtype=torch.bool)
+        whole[pixels] = (covered[pixels] > 1.0 - 1e-6)
+        uniform += int(whole.sum()) * FOOTPRINT_MAX ** 2
+        partial += int((~whole[pixels]).sum()) - int((covered[pixels] == 0).sum())
+        g = g.select(whole[g.pixel])
+        preps.append(prepare(g, mesh, lights_per_view[vi], shadows=shadows))
+        kk = torch.zeros(HW, dtype=torch.long)
+        kk[pixels] = k * k
+        ff = torch.zeros(HW, dtype=torch.float64)
+        ff[pixels] = f
+        counts.append(kk)
+        fps.append(ff)
+        pix_lists.append(whole)
+    samples = observe_views(preps, photos, map_size, lights=lights, bilinear=True, dtype=dtype, clipped=clipped,
+                            footprints=True)
+    # group the kept samples by (view, pixel): every sample of a kept pixel survives (only unlit ones are dropped,
+    # and they contribute 0), so a pixel's value is Σ share · L over its kept samples
+    key = samples.view * (max(h * w for h, w in samples.image_size) + 1) + samples.pixel
+    uniq, group = torch.unique(key, return_inverse=True)
+    R = int(uniq.numel())
+    first = torch.full((R,), samples.n_samples, dtype=torch.long).scatter_reduce(
+        0, group, torch.arange(samples.n_samples), "amin")
+    view = samples.view[first]
+    pixel = samples.pixel[first]
+    counts_r = torch.stack([torch.nn.functional.pad(c, (0, HWmax - len(c))) for c in counts])[view, pixel] \
+        if (HWmax := max(len(c) for c in counts)) else torch.zeros(0, dtype=torch.long)
+    foot_r = torch.stack([torch.nn.functional.pad(c, (0, HWmax - len(c))) for c in fps])[view, pixel]
+    share = samples.weight                       # observe_views carries the G-buffer weight 1/k² for footprints
+    dt = samples.radiance.dtype
+    noise = torch.full((R, 3), float("nan"), dtype=dt)
+    for vi in range(n):
+        h, w = samples.image_size[vi]
+        valid = torch.zeros(h * w, dtype=torch.bool)
+        sel = view == vi
+        valid[pixel[sel]] = True
+        res = noise_residual(torch.nan_to_num(photos[vi].to(dt), nan=0.0, posinf=0.0, neginf=0.0),
+                             valid.reshape(h, w))
+        noise[sel] = res.reshape(-1, 3)[pixel[sel]]
+    drops = {f"samples_{k}": v for k, v in samples.drops.items() if k != "background"}
+    drops["partial_pixels"] = max(partial, 0)
+    samples.weight = torch.ones_like(share)
+    samples.noise_residual = None
+    return PixelFootprints(samples=samples, group=group, share=share, radiance=samples.radiance[first].clone(),
+                           view=view, pixel=pixel, counts=counts_r, noise_residual=noise, footprint_texels=foot_r,
+                           drops=drops, cast_rays=cast, uniform_rays=uniform)
+
+
+def saving(fp: PixelFootprints) -> float:
+    """Fraction of rays the adaptive count saves against :data:`FOOTPRINT_MAX`² rays on every kept pixel."""
+    return 1.0 - float(fp.counts.sum()) / max(fp.n_pixels * FOOTPRINT_MAX ** 2, 1) if fp.n_pixels else 0.0
+
