@@ -119,7 +119,12 @@ class SyntheticConfig:
         light_offset_deg: flash/fixed: angle between a light and its camera seen from the target.
         light_irradiance: irradiance (RGB scalar) each light delivers at the target.
         photo: the photo model.
-        supersample: k×k rays per pixel (anti-aliased photos; 1 for the solver's exactness tests).
+        supersample: k×k rays per pixel, each at a random position inside its stratum of the pixel (``jitter``):
+            how a camera integrates light over a pixel and how a Monte Carlo renderer anti-aliases. The default 8
+            (64 rays) is finer than, and differently placed from, any pixel sampling the fit uses
+            (:mod:`capture.footprint`: at most 4 × 4 at the strata's centres), so the photos cannot flatter the
+            fit. 1 renders the pixel centres only — the fit's own discretisation, for exactness tests of a solver.
+        jitter: random positions inside the strata (default); False puts them at the strata's centres.
         sampling: map sampling, "bilinear" (default) or "nearest" (each sample reads one texel).
         shadows: cast shadow rays.
         seed: seeds the random rig and the photo noise (view i uses seed·1000003 + i).
@@ -146,7 +151,8 @@ class SyntheticConfig:
     light_offset_deg: float = 20.0
     light_irradiance: float = 1.0
     photo: PhotoModel = field(default_factory=PhotoModel)
-    supersample: int = 1
+    supersample: int = 8
+    jitter: bool = True
     sampling: str = "bilinear"
     shadows: bool = True
     seed: int = 0
@@ -536,20 +542,40 @@ def highlight_coverage(prepared: list, texture_size: tuple[int, int], roughness:
     return out
 
 
-def render_scene(scene: Scene, config: SyntheticConfig) -> tuple[list[Tensor], list]:
-    """Linear radiance images ``[H, W, 3]`` of every view, and the per-view :class:`Prepared`.
+#: Rays per block when :func:`render_scene` renders a view in blocks of pixels (bounded memory: ~1 KB per ray
+#: through the G-buffer, the shadow rays and the shading).
+RENDER_BLOCK_RAYS = 1 << 20
 
-    One G-buffer (``config.supersample``) and one :func:`renderer.shading.prepare` (shadow rays) per
-    view, then :func:`renderer.shading.shade` with ``config.sampling``.
+
+def render_scene(scene: Scene, config: SyntheticConfig) -> tuple[list[Tensor], list]:
+    """Linear radiance images ``[H, W, 3]`` of every view, and the per-view pixel-centre :class:`Prepared`.
+
+    Per view, blocks of pixels of at most :data:`RENDER_BLOCK_RAYS` rays: a G-buffer of ``config.supersample``²
+    rays per pixel (jittered inside their strata with ``config.jitter``, seeded by ``config.seed`` and the view),
+    :func:`renderer.shading.prepare` (shadow rays), :func:`renderer.shading.shade` with ``config.sampling``, and the
+    box-filtered average per pixel (misses count as a black background). The returned ``Prepared`` are of the
+    pixel centres (one ray per pixel), for statistics such as :func:`highlight_coverage`.
     """
     images, preps = [], []
+    k = config.supersample
     with torch.no_grad():
-        for view in scene.views:
-            g = render_gbuffer(scene.mesh, view.camera, config.supersample)
-            prep = prepare(g, scene.mesh, view.lights, shadows=config.shadows)
-            rad = shade(scene.model, scene.maps, prep, sampling=config.sampling)
-            images.append(g.to_image(rad))
-            preps.append(prep)
+        for vi, view in enumerate(scene.views):
+            cam = view.camera
+            gen = torch.Generator().manual_seed(config.seed * 7919 + vi) if config.jitter and k > 1 else None
+            n_pix = cam.height * cam.width
+            step = max(1, RENDER_BLOCK_RAYS // (k * k))
+            acc = torch.zeros(n_pix, 3)
+            for start in range(0, n_pix, step):
+                pixels = torch.arange(start, min(start + step, n_pix))
+                g = render_gbuffer(scene.mesh, cam, k, jitter=gen, pixels=pixels)
+                if len(g) == 0:
+                    continue
+                prep = prepare(g, scene.mesh, view.lights, shadows=config.shadows)
+                rad = shade(scene.model, scene.maps, prep, sampling=config.sampling)
+                acc.index_add_(0, g.pixel, rad.to(acc.dtype) * g.weight[:, None].to(acc.dtype))
+            images.append(acc.reshape(cam.height, cam.width, 3))
+            g1 = g if (k == 1 and n_pix <= step) else render_gbuffer(scene.mesh, cam, 1)
+            preps.append(prepare(g1, scene.mesh, view.lights, shadows=config.shadows))
     return images, preps
 
 
@@ -575,7 +601,8 @@ def make_synthetic(config: SyntheticConfig, out_dir, overwrite: bool = False) ->
     cov = highlight_coverage(preps, config.texture_size, rough, scene.regions)
     gt = GroundTruth(
         model=scene.model_spec, maps=scene.maps, regions=scene.regions, region_names=dict(REGION_NAMES),
-        render={"supersample": config.supersample, "sampling": config.sampling, "shadows": config.shadows},
+        render={"supersample": config.supersample, "jitter": config.jitter, "sampling": config.sampling,
+                "shadows": config.shadows},
         photo=config.photo.to_dict(),
     )
     meta = {
@@ -604,7 +631,7 @@ def default_scene(**overrides) -> SyntheticConfig:
         mesh="uv_sphere", n_views=16, image_size=256, texture_size=256,
         model="ggx-lambert",
         camera_rig="orbit", elevations=(15.0, 50.0), light_rig="flash", n_lights=2, photo=PhotoModel(),
-        supersample=1, sampling="bilinear", seed=0,
+        sampling="bilinear", seed=0,
     )
     return replace(cfg, **overrides) if overrides else cfg
 
@@ -617,6 +644,6 @@ def small_scene(model: str | dict = "ggx-lambert", *, image_size: int = 96, text
                     "torus": {"segments": 48, "rings": 24}, "nonconvex": {"segments": 48, "detail": 12}}.get(mesh, {})
     cfg = dict(mesh=mesh, mesh_options=mesh_options, n_views=n_views, image_size=image_size,
                texture_size=texture_size, model=model, camera_rig="orbit", elevations=(15.0, 50.0),
-               light_rig="flash", n_lights=2, photo=PhotoModel(), supersample=1, seed=0)
+               light_rig="flash", n_lights=2, photo=PhotoModel(), seed=0)
     cfg.update(overrides)
     return SyntheticConfig(**cfg)

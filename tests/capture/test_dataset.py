@@ -34,7 +34,8 @@ from renderer.shading import prepare, shade
 
 
 def _cfg(**kw):
-    base = dict(image_size=40, texture_size=32, n_views=3)
+    # pixel centres: the round-trip tests re-render the views bitwise from what the loader returns
+    base = dict(image_size=40, texture_size=32, n_views=3, supersample=1)
     base.update(kw)
     return small_scene(**base)
 
@@ -524,3 +525,25 @@ def test_camera_dict_round_trip_is_exact():
     cam = look_at((0.3, -4.1, 1.7), (0.0, 0.1, 0.0), (0.0, 0.0, 1.0), 37.0, 64, 48)
     back = Camera.from_dict(json.loads(json.dumps(cam.to_dict())))
     assert torch.equal(back.K, cam.K) and torch.equal(back.R, cam.R) and torch.equal(back.t, cam.t)
+
+
+def test_model_written_as_the_project_prints_it_is_read_back():
+    """`--model` takes the spelling the project prints: a sum of parts, each with options in parentheses; the label
+    of a spec reads back to the same spec and model; malformed spellings are named."""
+    from capture.dataset import model_from_spec, model_label, model_spec
+
+    spec = model_spec("lambert+microfacet(D=ggx,G=smith,F=none)")
+    assert spec == {"sum": [{"name": "lambert", "options": {}},
+                            {"name": "microfacet", "options": {"D": "ggx", "G": "smith", "F": "none"}}]}
+    m = model_from_spec(spec)
+    assert m.name == "lambert+microfacet(D=ggx, F=none, G=smith)" == model_label(spec)
+    assert model_spec(m.name) == spec and model_from_spec(m.name).param_names == ("albedo", "f0", "roughness")
+    assert model_spec("gotanda2012-layered(exact=true)") == {"name": "gotanda2012-layered",
+                                                              "options": {"exact": True}}
+    assert model_spec("x(a=1e+3, b=2)")["options"] == {"a": 1000.0, "b": 2}       # '+' inside a value stays
+    for bad, word in (("lambert+", "empty part"), ("microfacet(D=ggx", "unbalanced"), ("microfacet(D)", "key=value"),
+                      ("microfacet(D=a,D=b)", "twice"), ("(D=ggx)", "no model name")):
+        with pytest.raises(ValueError, match=word):
+            model_spec(bad)
+    with pytest.raises(ValueError, match="unknown model 'nope'"):
+        model_from_spec("lambert+nope(a=1)")
