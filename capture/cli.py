@@ -67,7 +67,8 @@ def _cmd_synth(args) -> int:
 def _add_synth_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", choices=("default", "small"), default="default", help="base scene")
     p.add_argument("--out", required=True, help="dataset folder to create (must not exist unless --overwrite)")
-    p.add_argument("--model", help="registered model name, or 'a+b' for a sum (default: ggx-lambert)")
+    p.add_argument("--model", help="model as the project writes it: a registered name, 'a+b' for a sum, options in "
+                   "parentheses, e.g. 'lambert+microfacet(D=ggx,G=smith,F=none)' (default: ggx-lambert)")
     p.add_argument("--model-options", help='JSON options of a single model, e.g. \'{"D": "beckmann"}\'')
     p.add_argument("--mesh", help="uv_sphere, torus, nonconvex, plane, or a mesh file with UVs")
     p.add_argument("--views", type=int, help="number of views")
@@ -81,7 +82,8 @@ def _add_synth_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--read-noise", type=float, default=0.0, help="read noise σ (fraction of saturation)")
     p.add_argument("--clip", action="store_true", help="clip highlights at 1 (always on for --encoding srgb)")
     p.add_argument("--encoding", choices=("linear", "srgb"), default="linear", help="EXR float or 8-bit sRGB PNG")
-    p.add_argument("--supersample", type=int, help="k×k rays per pixel")
+    p.add_argument("--supersample", type=int, help="k×k jittered rays per pixel (default 8; 1 = pixel centres only, "
+                   "the fit's own pixel-centre discretisation)")
     p.add_argument("--sampling", choices=("bilinear", "nearest"))
     p.add_argument("--seed", type=int)
     p.add_argument("--overwrite", "--force", dest="overwrite", action="store_true",
@@ -94,14 +96,18 @@ def _cmd_reconstruct(args) -> int:
     extra = {"pooled": args.pooled} if args.pooled is not None else {}
     report = reconstruct(args.dataset, model=args.model, out_dir=args.out, force=args.force,
                          solver=args.solver, loss=args.loss, texture_size=args.tex, holdout=args.holdout,
-                         **known_options(args), **extra)
+                         footprint=not args.pixel_centres, **known_options(args), **extra)
     summary = Path(args.out) / "summary.txt"
     print(summary.read_text() if summary.exists() else report)
     return 0
 
 
 def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", default="auto", help="model name, or 'auto' (cheapest that explains the photos)")
+    p.add_argument("--model", default="auto", help="model as the project writes it (e.g. "
+                   "'lambert+microfacet(D=ggx,G=smith,F=none)'), or 'auto' (cheapest that explains the photos)")
+    p.add_argument("--pixel-centres", action="store_true",
+                   help="fit each pixel as the one ray through its centre instead of the area average over its "
+                        "footprint (only for photos rendered that way)")
     p.add_argument("--solver", choices=("fast", "adam"), default="fast",
                    help="fast: per-texel Gauss-Newton/LM with closed-form linear parameters; adam: first order")
     p.add_argument("--loss", choices=("l2", "huber", "l1"), default="l2", help="robust loss (huber/l1 for highlights)")

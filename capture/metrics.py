@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import torch
@@ -189,3 +190,43 @@ def image_metrics(rendered: Tensor, photo: Tensor, mask: Tensor | None = None) -
     A, B = a.permute(2, 0, 1)[None].clamp(0, 1), b.permute(2, 0, 1)[None].clamp(0, 1)
     ssim = float(kornia.metrics.ssim(A, B, 11).mean())
     return {"psnr": psnr, "ssim": ssim, "rmse_linear": (mse ** 0.5) * peak if mse == mse else float("nan")}
+
+
+#: Cosine above which a texel counts as well lit and well seen (:func:`well_lit_texels`): n·v > 0.3 and n·l > 0.3
+#: (within 72.5° of the normal) for some (view, light) pair — the texels whose photos are not grazing.
+WELL_LIT_COS = 0.3
+
+
+def well_lit_texels(obs) -> Tensor:
+    """``[H, W]`` bool: texels some pixel-centre sample sees with n·v > :data:`WELL_LIT_COS` under a light with
+    n·l > :data:`WELL_LIT_COS` (``obs``: :class:`capture.observations.Observations`)."""
+    H, W = obs.map_size
+    ok = (obs.angles.nl.reshape(-1) > WELL_LIT_COS) & (obs.angles.nv.reshape(-1) > WELL_LIT_COS)
+    out = torch.zeros(H * W, dtype=torch.bool, device=obs.device)
+    out[obs.texel[obs.pair_sample[ok]]] = True
+    return out.reshape(H, W)
+
+
+def pixel_sized_texels(fp) -> Tensor:
+    """``[H, W]`` bool: texels that cover at least one pixel in some view — read by a sample of a pixel whose texel
+    footprint is at most one texel per pixel step (``fp``: :class:`capture.footprint.PixelFootprints`)."""
+    H, W = fp.map_size
+    small = fp.footprint_texels[fp.group] <= 1.0
+    out = torch.zeros(H * W, dtype=torch.bool, device=fp.device)
+    out[fp.samples.texel[small]] = True
+    return out.reshape(H, W)
+
+
+def highlight_texels(obs, roughness: Tensor, min_angle_deg: float = 1.0) -> Tensor:
+    """``[H, W]`` bool: texels seen inside a highlight — some (sample, light) pair with the half vector within the
+    half-maximum angle of the GGX lobe of the texel's roughness ``[H, W, 1]`` (at least ``min_angle_deg``) of the
+    normal, the criterion of :func:`capture.synthetic.highlight_coverage`."""
+    from materials.roughness import half_max_angle
+
+    H, W = obs.map_size
+    theta = half_max_angle(roughness.reshape(-1).double()).clamp_min(math.radians(min_angle_deg))
+    tex = obs.texel[obs.pair_sample]
+    ok = obs.angles.nh.reshape(-1).double() >= torch.cos(theta.to(obs.device))[tex]
+    out = torch.zeros(H * W, dtype=torch.bool, device=obs.device)
+    out[tex[ok]] = True
+    return out.reshape(H, W)

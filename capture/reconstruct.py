@@ -34,12 +34,9 @@ roughness-observable texels the fitted lobe is narrower than the photos' directi
 
 from __future__ import annotations
 
-import json
 import math
 import operator
-import os
 import shutil
-import tempfile
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
@@ -70,6 +67,17 @@ AUTO_CANDIDATES = ("lambert", "ggx-lambert", "gotanda2012-layered")
 #: copy itself misfits: GGX + Lambert reads 318 there and the layered trial still runs (docs/reconstruction.md,
 #: "Session 15").
 AUTO_EXPLAINED_CHI2 = 4.0
+#: ``model="auto"`` takes a richer candidate whose held-out error did not drop when its training χ² per residual is
+#: at least this factor below the simpler one's and the simpler one does not explain its photos (χ² above
+#: ``auto_chi2``): held-out errors of a few views miss what a model cannot fit at all (a grazing-only capture, a
+#: chrome object: Lambert's χ² 10²–10⁸ × the specular model's), while a nested model's extra parameters lower the
+#: training χ² of photos that need none by far less than 10× (a few extra parameters per texel against tens of
+#: residuals).
+AUTO_CHI2_GAIN = 10.0
+#: The final fit's χ² per residual above which the summary warns that the photos are not explained: residuals of
+#: 10 σ on average, 10 % of the signal under the 1 % noise model — far beyond noise, sub-pixel sampling or
+#: quantisation (photos of the fitted model read 0–3).
+UNEXPLAINED_CHI2 = 100.0
 
 
 class ReconstructionError(ValueError):
@@ -93,6 +101,7 @@ class Report:
     errors: dict = field(default_factory=dict)
     views: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
+    model_spec: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -150,7 +159,8 @@ def static_lights(views) -> tuple[bool, int, int]:
 
 _FAST_KEYS = ("iterations", "grid", "refine", "schedule", "smoothness", "delta", "observable_std", "noise",
               "reproject", "sampling", "joint_iterations", "cg_iterations", "tol", "fill_before_joint",
-              "share", "candidates", "sharing", "sharing_albedo", "anchor_weight", "pooled")
+              "share", "candidates", "sharing", "sharing_albedo", "anchor_weight", "pooled", "footprints",
+              "footprint_iterations")
 _ADAM_KEYS = ("iterations", "lr", "delta", "observable_std", "noise", "sampling", "time_budget_s")
 
 
@@ -260,7 +270,7 @@ def _fit(model, obs: Observations, solver: str, loss: str, options: dict, progre
     if to_fit and solver == "fast":
         # only the scalars are kept from it, taken where they are observable: 16 roughness values do
         # (bilinear 256² layered scene: 24.9 → 18.6 s, coat η and roughness unchanged to 5 digits)
-        first = dict(options, joint_iterations=0, share=False,
+        first = dict(options, joint_iterations=0, share=False, footprints=None,
                      grid=16 if options.get("grid") is None else options["grid"])
     fit = _solve(model, first_obs, solver, loss, first, progress)
     if not to_fit:
@@ -288,6 +298,44 @@ def _heldout_error(model, fit: FitResult, obs: Observations, sampling: str = "ne
     squared error, so the RMSE moved by 2 % between models whose held-out PSNR on the benchmark's own views
     differs by 11 dB (docs/reconstruction.md)."""
     return float((_render(model, fit.maps, obs, sampling) - obs.radiance).abs().mean())
+
+
+def _auto_verdict(tried: list[dict], params, err: float, chi2: float, best_err: float, auto_gain: float,
+                  auto_chi2: float) -> tuple[str, str]:
+    """``model="auto"``'s judgement of a candidate after the ones ``tried`` (report rows with ``params``,
+    ``train_chi2``, ``model`` and, for failed ones, ``failed_fit``): ``("failed" | "better" | "stop", why)``.
+
+    * failed — it contains the last candidate that did not fail (its parameters are a superset) yet fits its
+      training photos clearly worse (χ² above 1.1 × that one's + 1: 10 % and more than the noise): a failed fit, not
+      evidence against the richer model; it decides nothing and the search goes on;
+    * better — its held-out error dropped by more than ``auto_gain``, or its training χ² is at least
+      :data:`AUTO_CHI2_GAIN` × below that of a previous candidate that does not explain its photos (χ² above
+      ``auto_chi2``) — then ``why`` says so;
+    * stop — neither: richer models are not tried.
+    """
+    prev = next((x for x in reversed(tried) if not x.get("failed_fit")), None)
+    if prev is not None and set(prev["params"]) <= set(params) and chi2 > 1.1 * prev["train_chi2"] + 1.0:
+        return "failed", (f"fits its training photos worse (χ² {chi2:.3g}) than {prev['model']} "
+                          f"({prev['train_chi2']:.3g}), which it contains")
+    dropped = err < best_err * (1 - auto_gain)
+    much_better = prev is not None and prev["train_chi2"] > auto_chi2 and chi2 * AUTO_CHI2_GAIN <= prev["train_chi2"]
+    if much_better and not dropped:
+        return "better", (f"training χ² {chi2:.3g} ≥ {AUTO_CHI2_GAIN:g}× below {prev['model']}'s "
+                          f"{prev['train_chi2']:.3g}, which does not explain its photos (held-out error alone would "
+                          f"have stopped)")
+    return ("better" if dropped else "stop"), ""
+
+
+def _footprint_misfit(model, fit: FitResult, fp, obs: Observations, noise=NOISE) -> float:
+    """:func:`_misfit` of the photos' pixels as the footprint operator predicts them (:mod:`capture.footprint`),
+    σ from the noise model at each pixel's value, scaled by the noise measured in image space (``obs``)."""
+    from .solvers import noise_sigma
+
+    y = fp.radiance.to(torch.float64)
+    sigma = noise_sigma(y, noise) * math.sqrt(max(1.0, photo_noise_ratio(obs, noise) or 1.0))
+    with torch.no_grad():
+        pred = fp.render(model, {k: v.to(fp.radiance.dtype) for k, v in fit.raw.items()}).to(torch.float64)
+    return float((((pred - y) / sigma) ** 2).mean())
 
 
 def _misfit(model, fit: FitResult, obs: Observations, sampling: str, noise=NOISE) -> float:
@@ -362,7 +410,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                 max_grid_views: int = 8, sampling: str | None = None,
                 threads: int | None = None, known: Mapping[str, object] | None = None,
                 scalars: tuple[str, ...] | list[str] = SCALARS, holdout: Sequence[int] | None = None,
-                **options) -> Report:
+                footprint: bool = True, **options) -> Report:
     """Recover the material maps of a dataset and write them to ``out_dir`` (see module docstring).
 
     Args:
@@ -380,10 +428,12 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             fit's χ² per residual (:func:`_misfit`) at most this (default :data:`AUTO_EXPLAINED_CHI2`); 0 turns
             that off. A model that leaves nothing but noise leaves a richer one nothing to explain.
         max_grid_views: views shown in the re-render grid.
-        sampling: how a sample reads the maps: "nearest" or "bilinear"; None = as the dataset's
-            ground truth was rendered (``gt.render.sampling``), else "bilinear" (a texture-mapped
-            surface). Bilinear runs the per-texel solve and then the joint refinement
-            (:func:`capture.solvers.refine_joint`).
+        sampling: how a sample reads the maps: "nearest" or "bilinear"; None = "bilinear" (a texture-mapped
+            surface; the ground truth, when a dataset has one, is never read to decide how to fit). Bilinear runs
+            the per-texel solve and then the joint refinement (:func:`capture.solvers.refine_joint`).
+        footprint: fit the photos' pixels as area averages over their footprints (:mod:`capture.footprint`,
+            the fast solver's final joint solve, default) — how every camera and every renderer forms a pixel.
+            False fits one ray per pixel centre only: exact only for photos rendered that way.
         threads: torch intra-op threads for this call (restored after); None = leave as is. On a
             machine where another process holds a core, 1 thread is much faster than 2 (measured
             ~70× on small index_add ops: OpenMP threads wait for the busy core).
@@ -441,10 +491,12 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     t = time.perf_counter()
     if out_dir is None:
         raise ReconstructionError("out_dir is required: the folder to write the maps and report into")
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not force:
-        raise ReconstructionError(f"output folder {out_dir} exists; pass force=True (--force) to replace it "
-                                  f"or choose another folder")
+    from capture.dataset import dataset_root
+    from capture.outputs import check_output
+
+    # before any work: never the dataset or inside it, an existing folder only with force, a folder we can write in
+    out_dir = check_output(out_dir, {dataset_root(dataset_path): "the dataset folder"}, force=force,
+                           error=ReconstructionError, force_flag="force=True (--force)")
     if solver not in ("fast", "adam"):
         raise ReconstructionError(f"solver must be 'fast' or 'adam', got {solver!r}")
     if loss not in LOSSES:
@@ -491,7 +543,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             if all(x is not y for y in all_lights):
                 all_lights.append(x)
     if sampling is None:
-        sampling = (ds.gt.render.get("sampling") if ds.gt is not None and ds.gt.render else None) or "bilinear"
+        sampling = "bilinear"
     if sampling not in ("nearest", "bilinear"):
         raise ReconstructionError(f"sampling must be 'nearest' or 'bilinear', got {sampling!r}")
     options = {**options, "sampling": sampling}
@@ -507,12 +559,30 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                              bilinear=sampling == "bilinear")
 
     obs = observe(texture_size)
+    fp_all = fp = held_fp = None
+    if footprint and solver == "fast" and sampling == "bilinear":
+        from .footprint import observe_footprints, saving
+
+        def footprints(size: int):
+            return observe_footprints(ds.mesh, [v.camera for v in ds.views], [v.lights for v in ds.views],
+                                      [p.gbuffer for p in preps], [p.radiance for p in photos], (size, size),
+                                      lights=all_lights, clipped=[p.saturated for p in photos], dtype=dtype)
+
+        fp_all = footprints(texture_size)
+        fp = fp_all.select_views(fit_views) if held_views else fp_all
+        held_fp = fp_all.select_views(held_views) if held_views else None
     times["observe"] = time.perf_counter() - t
     n_pix = sum(v.camera.width * v.camera.height for v in ds.views)
     report = Report(model="", solver=solver, out_dir=str(out_dir))
     report.samples = {"pixels": n_pix, "valid": obs.n_samples, "pairs": obs.n_pairs,
                       "lights": len(all_lights), "views": len(ds.views)}
     report.drops = dict(obs.drops)
+    if fp_all is not None:
+        report.samples["footprints"] = {
+            "pixels": fp_all.n_pixels, "samples": fp_all.n_samples,
+            "samples_per_pixel": dict(zip(*(x.tolist() for x in torch.unique(fp_all.counts, return_counts=True)),
+                                          strict=True)),
+            "rays_cast": fp_all.cast_rays, "rays_saved_vs_uniform": saving(fp_all), "drops": fp_all.drops}
     all_obs, held_obs = obs, None
     if held_views:
         obs, held_obs = all_obs.select_views(fit_views), all_obs.select_views(held_views)
@@ -542,22 +612,48 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         test_obs = trial.select_views(held) if held else trial
         report.samples["auto_trials"] = {"texture_size": int(trial.map_size[0]), "samples": trial.n_samples,
                                          "sample_fraction": trial.n_samples / max(obs.n_samples, 1)}
+        train_fp = test_fp = None
+        if fp is not None:
+            # the trials judge the photos' pixels as the final fit does: footprints on the trial's maps, thinned
+            # by the trial's area ratio as its pixel-centre samples are
+            size = int(trial.map_size[0])
+            tfp = fp if size == texture_size else footprints(size).select_views(fit_views)
+            if size != texture_size:
+                gen = torch.Generator().manual_seed(0)
+                tfp = tfp.select(torch.rand(tfp.n_pixels, generator=gen) < (size / texture_size) ** 2)
+            train_fp = tfp.select_views([i for i in fit_views if i not in held]) if held else tfp
+            test_fp = tfp.select_views(held) if held else tfp
         best_err, chosen = math.inf, candidates[0]
         for name in candidates:
             m = _model(name, known)
             params = list(m.param_names)
             ts = time.perf_counter()
             try:
-                fit, m, notes = _fit(m, train_obs, solver, loss, options, cb, scalars)
+                fit, m, notes = _fit(m, train_obs, solver, loss, {**options, "footprints": train_fp}
+                                     if train_fp is not None else options, cb, scalars)
             except SolverError as exc:
                 raise ReconstructionError(f"auto, trial fit of {name}: {exc}") from None
-            err, chi2 = _heldout_error(m, fit, test_obs, sampling), _misfit(m, fit, train_obs, sampling)
+            if train_fp is not None:
+                with torch.no_grad():
+                    err = float((test_fp.render(m, {k: v.to(dtype) for k, v in fit.maps.items()})
+                                 - test_fp.radiance).abs().mean())
+                chi2 = _footprint_misfit(m, fit, train_fp, train_obs)
+            else:
+                err, chi2 = _heldout_error(m, fit, test_obs, sampling), _misfit(m, fit, train_obs, sampling)
             report.selection.append({"model": name, "heldout_mae": err, "train_chi2": chi2,
                                      "seconds": time.perf_counter() - ts,
                                      "params": params,
                                      **({"scalars": {k: v["value"] for k, v in notes.items()}} if notes else {})})
-            if err < best_err * (1 - auto_gain):
-                best_err, chosen = err, name
+            verdict, why = _auto_verdict(report.selection[:-1], params, err, chi2, best_err, auto_gain, auto_chi2)
+            if verdict == "failed":
+                report.selection[-1]["failed_fit"] = why
+                report.warnings.append(f"auto: the trial fit of {name} failed ({why}); it was not used to choose the "
+                                       f"model")
+                continue
+            if why:
+                report.selection[-1]["chosen_by"] = why
+            if verdict == "better":
+                best_err, chosen = min(err, best_err), name
                 if chi2 <= auto_chi2 and name != candidates[-1]:
                     report.selection[-1]["stopped"] = f"explains its training photos within their noise (χ² per " \
                                                       f"residual {chi2:.3g} ≤ {auto_chi2:g}); richer models skipped"
@@ -572,11 +668,15 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     times["select"] = time.perf_counter() - t
     mdl = _model(model, known)
     report.model = model
+    from capture.dataset import model_label, model_spec
+
+    report.model_spec = {"spec": model_spec(model), "written": model_label(model)}
 
     # -- solve ----------------------------------------------------------------------------------
     t = time.perf_counter()
     try:
-        fit, mdl, scalar_notes = _fit(mdl, obs, solver, loss, options, cb, scalars)
+        fit, mdl, scalar_notes = _fit(mdl, obs, solver, loss, {**options, "footprints": fp} if fp is not None
+                                      else options, cb, scalars)
     except SolverError as exc:
         raise ReconstructionError(str(exc)) from None
     finally:
@@ -587,6 +687,15 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             report.warnings.append(f"parameter '{n}' is fitted as one value for the object but is "
                                    f"unobservable in every texel; its value {note['value']} is a guess")
     times["solve"] = time.perf_counter() - t
+    chi2 = _footprint_misfit(mdl, fit, fp, obs) if fp is not None else _misfit(mdl, fit, obs, sampling)
+    if chi2 > UNEXPLAINED_CHI2:
+        report.warnings.append(
+            f"the fitted maps do not explain the photos: χ² per residual {chi2:.3g} against ≤ ~4 for photos explained "
+            f"within their noise (residuals of {math.sqrt(chi2):.0f} σ on average). Likely causes: cameras in another "
+            f"convention (OpenGL/Blender: y up, z backward — renderer.camera converts them), light intensities in "
+            f"other units or a wrong exposure, a model too simple for the material (try --model auto or a richer "
+            f"one), a lens blur or pixel filter other than a box, or a mesh that does not match the photos; the "
+            f"error column of views.png shows where")
     known_used = getattr(mdl, "known", {})
     unused = sorted(set(materials.CANONICAL) - set(mdl.param_names) - set(known_used))
     report.skipped["parameters_not_allocated"] = unused
@@ -627,6 +736,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             f"{fb['fallback_data_cost']:.3g}) — a material of the object gave no texel that determines it (more views "
             f"or lights off the camera axis would)")
     report.fit = {"iterations": fit.iterations, "final_cost": fit.history[-1] if fit.history else None,
+                  "chi2_per_residual": chi2, "image_formation": "pixel footprints" if fp is not None else
+                  "one ray per pixel centre",
                   "seconds": fit.time_s, **{k: v for k, v in fit.info.items() if k != "accepted"}}
     if scalar_notes:
         report.fit["scalars"] = scalar_notes
@@ -665,6 +776,19 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             report.errors["maps_determined_at_truth"] = {k: v["determined"] for k, v in both.items()
                                                          if "determined" in v}
         report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
+        # the texel sets the image-formation targets are stated on (docs/image-formation.md): well lit, and of
+        # those the ones that cover at least a pixel in some view and, for specular maps, seen inside a highlight
+        from .metrics import highlight_texels, pixel_sized_texels, well_lit_texels
+
+        lit = well_lit_texels(obs)
+        sets = {"well_lit": lit}
+        if fp is not None:
+            sets["well_lit_pixel_sized"] = lit & pixel_sized_texels(fp)
+        if "roughness" in ds.gt.maps and tuple(ds.gt.maps["roughness"].shape[:2]) == tuple(obs.map_size):
+            sets["well_lit_highlight"] = lit & highlight_texels(obs, ds.gt.maps["roughness"])
+        report.errors["maps_by_texel_set"] = {
+            k: {"texels": int(m.sum()), **{n: e["rmse"] for n, e in map_errors(fit.raw, ds.gt.maps, m).items()}}
+            for k, m in sets.items()}
         report.errors["observability"] = both
         if known_maps:  # how far the given values are from the truth, over the observed texels
             report.errors["known"] = map_errors(known_maps, ds.gt.maps, observed, None, None)
@@ -672,18 +796,28 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     # the fitted views with the fitted values, the held-out ones with the filled maps a user gets (texels only they
     # see are unobserved in the fit)
     renders = []
-    pred = _render(mdl, fit.raw, obs, sampling)
-    held_pred = _render(mdl, fit.maps, held_obs, sampling) if held_obs is not None else None
+    if fp is not None:
+        # the fitted views' pixels as the fit models them (area averages over their footprints)
+        with torch.no_grad():
+            pred = fp.render(mdl, {k: v.to(dtype) for k, v in fit.raw.items()})
+            held_pred = held_fp.render(mdl, {k: v.to(dtype) for k, v in fit.maps.items()}) \
+                if held_fp is not None else None
+    else:
+        pred = _render(mdl, fit.raw, obs, sampling)
+        held_pred = _render(mdl, fit.maps, held_obs, sampling) if held_obs is not None else None
     for i, v in enumerate(ds.views):
         src, values = (held_obs, held_pred) if i in held_views else (obs, pred)
         H, W = v.camera.height, v.camera.width
-        img = torch.zeros(H * W, 3, dtype=values.dtype)
-        sel = src.view == i
-        img[src.pixel[sel]] = values[sel]
-        img = img.reshape(H, W, 3)
-        mask = torch.zeros(H * W, dtype=torch.bool)
-        mask[src.pixel[sel]] = True
-        mask = mask.reshape(H, W)
+        if fp is not None:
+            img, mask = (held_fp if i in held_views else fp).images(values, i, (H, W))
+        else:
+            img = torch.zeros(H * W, 3, dtype=values.dtype)
+            sel = src.view == i
+            img[src.pixel[sel]] = values[sel]
+            img = img.reshape(H, W, 3)
+            mask = torch.zeros(H * W, dtype=torch.bool)
+            mask[src.pixel[sel]] = True
+            mask = mask.reshape(H, W)
         m = image_metrics(img, photos[i].radiance, mask)
         report.views.append({"view": i, **({"heldout": True} if i in held_views else {}), **m})
         renders.append((i, img, mask))
@@ -700,12 +834,13 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
 def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, report: Report, times, force,
                    max_grid_views, spt: Tensor, vpt: Tensor, known_maps: Mapping[str, Tensor]) -> None:
+    from capture.outputs import atomic_folder, json_text, na_floats, na_text
     from renderer.imageio import write_exr, write_png
 
     t = time.perf_counter()
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp"))
-    try:
+    # atomic: a temporary folder next to out_dir, moved into place at the end (the umask's permissions, the old
+    # output removed); any failure or interrupt removes it; an OSError is one line naming out_dir
+    with atomic_folder(out_dir, force=force, error=ReconstructionError, force_flag="force=True (--force)") as tmp:
         for k, m in {**fit.maps, **known_maps}.items():
             write_exr(tmp / f"{k}.exr", m.float())
             png = m if m.shape[-1] in (1, 3) else m[..., :3]
@@ -719,13 +854,16 @@ def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, repo
             write_png(tmp / f"unobservable_{k}.png", fit.unobservable[k].float()[..., None], transfer="linear")
         write_exr(tmp / "coverage.exr", torch.stack([spt.float(), vpt.float(), fit.observed.float()], -1))
         # re-render grid: photo | render | |error| ×4, for up to max_grid_views views
+        # NaN and ±inf pixels (dropped by the fit) are shown black
+        shown = lambda x: x.float().nan_to_num(nan=0.0, posinf=0.0, neginf=0.0)  # noqa: E731
         rows = []
-        peak = max(float(torch.nan_to_num(p.radiance, nan=0.0, posinf=0.0).max()) for p in photos) or 1.0
+        peak = max(float(shown(p.radiance).max()) for p in photos)
+        peak = peak if peak > 0 else 1.0
         for i, img, mask in renders[:max_grid_views]:
-            ph = torch.nan_to_num(photos[i].radiance.float(), nan=0.0, posinf=0.0)
-            err = ((img.float() - ph).abs() * 4) * mask[..., None]
-            rows.append([ph / peak, img.float() / peak, err / peak])
-        write_png(tmp / "views.png", _grid_image(rows).clamp(0, 1), transfer="srgb")
+            ph, im = shown(photos[i].radiance), shown(img)
+            err = torch.where(mask[..., None], (im - ph).abs() * 4, torch.zeros_like(ph))
+            rows.append([ph / peak, im / peak, err / peak])
+        write_png(tmp / "views.png", shown(_grid_image(rows)).clamp(0, 1), transfer="srgb")
         mesh_src = Path(ds.root) / ds.mesh_file
         if mesh_src.suffix.lower() == ".obj":
             shutil.copyfile(mesh_src, tmp / "mesh.obj")
@@ -736,20 +874,10 @@ def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, repo
         times["write"] = time.perf_counter() - t
         times["total"] = sum(v for k, v in times.items() if k != "total")
         report.times = dict(times)
-        (tmp / "report.json").write_text(json.dumps(report.to_dict(), indent=2, default=str))
-        (tmp / "summary.txt").write_text(_summary(report))
-        if out_dir.exists():
-            if not force:
-                raise ReconstructionError(f"output folder {out_dir} appeared while reconstructing; not replaced")
-            old = out_dir.parent / f".{out_dir.name}.old.{os.getpid()}"
-            os.replace(out_dir, old)
-            os.replace(tmp, out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        report.warnings[:0] = [w for w in ds.warnings if w not in report.warnings]  # the dataset's, e.g. NaN pixels
+        (tmp / "report.json").write_text(json_text(report.to_dict()))  # strict JSON: non-finite numbers are null
+        printed = Report(**na_floats(report.to_dict()))  # non-finite numbers print as n/a, not nan
+        (tmp / "summary.txt").write_text(na_text(_summary(printed)))
 
 
 def _check_holdout(holdout, n_views: int) -> list[int]:
@@ -810,6 +938,12 @@ def _summary(r: Report) -> str:
              + ", ".join(f"{k} {v}" for k, v in r.drops.items() if v),
              f"texels observed {r.coverage.get('observed')} / {r.coverage.get('texels')}; unobservable "
              + ", ".join(f"{k} {v}" for k, v in r.coverage.get("unobservable", {}).items())]
+    fps = r.samples.get("footprints")
+    if fps:
+        lines.append(f"image formation: pixel footprints, {fps['pixels']} whole pixels of {fps['samples']} sub-pixel "
+                     f"samples (per pixel: " + ", ".join(f"{k}: {v}" for k, v in fps["samples_per_pixel"].items())
+                     + f"; {fps['rays_saved_vs_uniform']:.0%} fewer than 16 per pixel); fit χ² per residual "
+                     f"{r.fit.get('chi2_per_residual', float('nan')):.3g}")
     saved = r.skipped.get("time_saved_estimate_s", {})
     skips = [f"parameters not allocated: {', '.join(r.skipped['parameters_not_allocated']) or 'none'}"] \
         if "parameters_not_allocated" in r.skipped else []
@@ -873,6 +1007,12 @@ def _summary(r: Report) -> str:
                 line += (f" | {truth[k]['rmse']:.5f} / {truth[k]['max']:.5f} "
                          f"({ob.get('determined_fraction', nan):.1%})")
             lines.append(line)
+        sets = r.errors.get("maps_by_texel_set", {})
+        if sets:
+            lines.append("RMSE by texel set: " + "; ".join(
+                f"{k.replace('_', ' ')} ({v['texels']}) " + " / ".join(f"{n} {e:.4f}" for n, e in v.items()
+                                                                       if n != "texels")
+                for k, v in sets.items()))
     for label, vs in (("re-render", [v for v in r.views if not v.get("heldout")]),
                       ("held-out views " + ", ".join(str(v["view"]) for v in r.views if v.get("heldout"))
                        + " (not fitted; filled maps)", [v for v in r.views if v.get("heldout")])):

@@ -60,6 +60,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from materials import Model
@@ -561,21 +562,29 @@ def render_scene(scene: Scene, config: SyntheticConfig) -> tuple[list[Tensor], l
     with torch.no_grad():
         for vi, view in enumerate(scene.views):
             cam = view.camera
-            gen = torch.Generator().manual_seed(config.seed * 7919 + vi) if config.jitter and k > 1 else None
+            g1 = render_gbuffer(scene.mesh, cam, 1)
+            preps.append(prepare(g1, scene.mesh, view.lights, shadows=config.shadows))
             n_pix = cam.height * cam.width
+            if k == 1:
+                images.append(g1.to_image(shade(scene.model, scene.maps, preps[-1], sampling=config.sampling)))
+                continue
+            # only pixels whose centre or a neighbour's hits the object can see it (an object thinner than a pixel
+            # that no centre ray hits would be missed; the built-in meshes have none)
+            hit = torch.zeros(n_pix)
+            hit[g1.pixel] = 1.0
+            near = F.max_pool2d(hit.reshape(1, 1, cam.height, cam.width), 3, stride=1, padding=1).reshape(-1) > 0
+            todo = torch.nonzero(near).squeeze(-1)
+            gen = torch.Generator().manual_seed(config.seed * 7919 + vi) if config.jitter else None
             step = max(1, RENDER_BLOCK_RAYS // (k * k))
             acc = torch.zeros(n_pix, 3)
-            for start in range(0, n_pix, step):
-                pixels = torch.arange(start, min(start + step, n_pix))
-                g = render_gbuffer(scene.mesh, cam, k, jitter=gen, pixels=pixels)
+            for start in range(0, len(todo), step):
+                g = render_gbuffer(scene.mesh, cam, k, jitter=gen, pixels=todo[start:start + step])
                 if len(g) == 0:
                     continue
                 prep = prepare(g, scene.mesh, view.lights, shadows=config.shadows)
                 rad = shade(scene.model, scene.maps, prep, sampling=config.sampling)
                 acc.index_add_(0, g.pixel, rad.to(acc.dtype) * g.weight[:, None].to(acc.dtype))
             images.append(acc.reshape(cam.height, cam.width, 3))
-            g1 = g if (k == 1 and n_pix <= step) else render_gbuffer(scene.mesh, cam, 1)
-            preps.append(prepare(g1, scene.mesh, view.lights, shadows=config.shadows))
     return images, preps
 
 

@@ -253,12 +253,20 @@ def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1, *, jitter: 
     """
     _check_inputs(mesh, camera, "render_gbuffer")
     k = _check_supersample(supersample)
-    grid = camera.jittered_grid(k, jitter, torch.float64) if jitter is not None else camera.pixel_grid(k, torch.float64)
-    pixel = torch.arange(camera.height * camera.width).repeat_interleave(k * k)
-    if pixels is not None:
+    if pixels is None:
+        grid = camera.jittered_grid(k, jitter, torch.float64) if jitter is not None else \
+            camera.pixel_grid(k, torch.float64)
+        pixel = torch.arange(camera.height * camera.width).repeat_interleave(k * k)
+    else:
+        # the same strata (pixel-major, x fastest inside a pixel) for the given pixels only
         pixels = _check_pixels(pixels, camera, "render_gbuffer")
-        sel = (pixels[:, None] * (k * k) + torch.arange(k * k)).reshape(-1)
-        grid, pixel = grid[sel], pixel[sel]
+        off = (torch.arange(k, dtype=torch.float64) + 0.5) / k - 0.5
+        oy, ox = torch.meshgrid(off, off, indexing="ij")
+        centre = torch.stack([(pixels % camera.width).double(), (pixels // camera.width).double()], -1)
+        grid = (centre[:, None, :] + torch.stack([ox.reshape(-1), oy.reshape(-1)], -1)[None]).reshape(-1, 2)
+        if jitter is not None:
+            grid = grid + (torch.rand(grid.shape, generator=jitter, dtype=torch.float64) - 0.5) / k
+        pixel = pixels.repeat_interleave(k * k)
     return _cast(mesh, camera, grid, pixel, torch.full((len(pixel),), 1.0 / (k * k), dtype=torch.float64), k)
 
 

@@ -3,19 +3,39 @@
 import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
 
 import capture.reconstruct as R
 import materials
+from capture import synthetic
 from capture.dataset import DatasetError
 from capture.observations import synthetic_observations
-from capture.reconstruct import UNRESOLVED_WARN, ReconstructionError, reconstruct, unresolved_roughness
+from capture.reconstruct import UNRESOLVED_WARN, ReconstructionError, unresolved_roughness
 from capture.solvers import JOINT_ATTEMPTS
-from capture.synthetic import make_synthetic, small_scene
+from capture.synthetic import make_synthetic
 from materials.roughness import half_max_angle
 from renderer.imageio import read_exr
+
+# This module pins the solver's pixel-centre stages — per-texel LM, reflectance sharing, the joint refinement, auto's
+# rules — on photos rendered the way those stages model them (one ray per pixel centre), where their results are
+# exact up to the photos' noise; its thresholds were measured that way. Photos integrated over the pixel and the
+# footprint solve that fits them are tested in test_footprint.py, and reconstructions of photos no shadecap code
+# rendered in test_independent_fixtures.py.
+
+
+def small_scene(*args, **kw):
+    return synthetic.small_scene(*args, **{"supersample": 1, **kw})
+
+
+def reconstruct(dataset, *args, **kw):
+    """The fit as these photos were made: pixel centres, and the map sampling they were rendered with (a user who
+    rendered with nearest sampling says so; reconstruct itself never reads the ground truth to decide)."""
+    if "sampling" not in kw:
+        kw["sampling"] = json.loads((Path(dataset) / "scene.json").read_text())["gt"]["render"]["sampling"]
+    return R.reconstruct(dataset, *args, **{"footprint": False, **kw})
 
 
 @pytest.fixture(scope="module")
@@ -767,3 +787,25 @@ def test_per_texel_lm_stops_early_once_its_cost_settles(tmp_path):
     rep = reconstruct(tmp_path / "lay", model="gotanda2012-layered", out_dir=tmp_path / "o3", progress=False,
                       known={"coat_ior": 1.5, "coat_roughness": 0.1})
     assert rep.fit["lm_iterations"] == 10
+
+
+def test_auto_verdict_a_failed_richer_fit_decides_nothing_and_a_far_lower_chi2_chooses():
+    """By hand: a model containing the last one that fits its training photos clearly worse failed (it is skipped,
+    and the next candidate is compared with the last good one); a far lower training χ² than a previous model that
+    does not explain its photos chooses the richer model even where the held-out error did not drop."""
+    from capture.reconstruct import AUTO_CHI2_GAIN, _auto_verdict
+
+    lam = {"model": "lambert", "params": ["albedo"], "train_chi2": 500.0}
+    ggx = ["albedo", "f0", "roughness"]
+    assert _auto_verdict([lam], ggx, 0.1, 800.0, 0.1, 0.05, 4.0)[0] == "failed"
+    assert _auto_verdict([lam], ggx, 0.1, 1.1 * 500 + 0.5, 0.1, 0.05, 4.0)[0] != "failed"     # within 10 % + 1
+    verdict, why = _auto_verdict([lam], ggx, 0.1, 500.0 / AUTO_CHI2_GAIN, 0.1, 0.05, 4.0)
+    assert verdict == "better" and "held-out error alone" in why
+    assert _auto_verdict([lam], ggx, 0.1, 500.0 / AUTO_CHI2_GAIN * 1.01, 0.1, 0.05, 4.0)[0] == "stop"
+    assert _auto_verdict([lam], ggx, 0.09, 400.0, 0.1, 0.05, 4.0) == ("better", "")            # held-out error
+    # the previous model explained its photos: a lower χ² alone is no reason
+    ok = dict(lam, train_chi2=3.0)
+    assert _auto_verdict([ok], ggx, 0.1, 0.01, 0.1, 0.05, 4.0)[0] == "stop"
+    # a failed row is skipped: the next candidate is compared with the last good one
+    failed = {"model": "ggx-lambert", "params": ggx, "train_chi2": 900.0, "failed_fit": "…"}
+    assert _auto_verdict([lam, failed], ggx + ["absorption"], 0.1, 40.0, 0.1, 0.05, 4.0)[0] == "better"

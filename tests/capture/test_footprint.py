@@ -1,0 +1,119 @@
+"""Pixel footprints: the fit's image-formation operator against photos rendered with 8 × 8 jittered samples."""
+
+import math
+
+import pytest
+import torch
+
+import materials
+from capture.footprint import FOOTPRINT_MAX, FOOTPRINT_SPACING, footprint_counts, observe_footprints, saving
+from capture.observations import observe_views
+from capture.solvers import Layout, PixelOperator, _groups, solve_fast
+from capture.synthetic import build_scene, render_scene, small_scene
+from renderer.camera import look_at
+from renderer.gbuffer import render_gbuffer
+from renderer.mesh import plane
+from renderer.shading import prepare
+
+
+def _scene(model="ggx-lambert", **kw):
+    cfg = small_scene(model, **{"image_size": 64, "texture_size": 64, "n_views": 3, **kw})
+    assert cfg.supersample == 8 and cfg.jitter           # the synthetic default: 64 jittered rays per pixel
+    sc = build_scene(cfg)
+    photos, _ = render_scene(sc, cfg)
+    cams, lights = [v.camera for v in sc.views], [v.lights for v in sc.views]
+    g1 = [render_gbuffer(sc.mesh, c, 1) for c in cams]
+    T = cfg.texture_size[0]
+    fp = observe_footprints(sc.mesh, cams, lights, g1, photos, (T, T))
+    obs = observe_views([prepare(g, sc.mesh, lt) for g, lt in zip(g1, lights, strict=True)], photos, (T, T),
+                        bilinear=True)
+    return sc, fp, obs, T
+
+
+@pytest.fixture(scope="module")
+def ggx():
+    return _scene()
+
+
+def test_footprints_predict_antialiased_photos_that_pixel_centres_miss(ggx):
+    """At the true maps the footprint operator reproduces photos integrated over the pixel with 64 jittered rays;
+    one ray per pixel centre does not (textured maps vary inside a pixel). Measured: median / p99 relative error
+    4e-4 / 0.022 against 2.5e-3 / 0.44 for the centres (128 px, 64² maps); asserted with margins."""
+    sc, fp, obs, _ = ggx
+    rel = lambda p, y: ((p - y).abs() / y.abs().clamp_min(1e-3)).mean(-1)  # noqa: E731
+    r_fp = rel(fp.render(sc.model, sc.maps), fp.radiance)
+    r_c = rel(obs.predict(sc.model, obs.per_sample(sc.maps, "bilinear")), obs.radiance)
+    assert float(r_fp.median()) < 2e-3 and float(r_fp.quantile(0.99)) < 0.06
+    assert float(r_c.quantile(0.99)) > 4 * float(r_fp.quantile(0.99))
+    # every kept pixel's shares sum to one and its samples read the map where the pixel is
+    tot = torch.zeros(fp.n_pixels, dtype=torch.float64).index_add(0, fp.group, fp.share.double())
+    assert torch.allclose(tot[torch.bincount(fp.group, minlength=fp.n_pixels) == fp.counts], torch.ones(1,
+                          dtype=torch.float64)) or float(tot.max()) <= 1 + 1e-9
+    assert fp.n_samples < fp.n_pixels * FOOTPRINT_MAX ** 2 and 0 < saving(fp) < 1
+
+
+def test_sample_count_follows_the_texel_footprint():
+    """A plane seen head-on: k = ceil(f / spacing) with f the texels per pixel, 1 when a pixel is far smaller than a
+    texel, the maximum at the silhouette."""
+    mesh = plane(size=2.0)
+    cam = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_y_deg=30, width=40, height=40)
+    g = render_gbuffer(mesh, cam, 1)
+    for T in (8, 64):
+        pixels, k, f = footprint_counts(g, (T, T))
+        H = cam.height
+        inner = torch.isin(pixels, g.pixel) & ((pixels // H - H // 2).abs() < 5) & ((pixels % H - H // 2).abs() < 5)
+        # pixel size on the plane: 2·d·tan(fov/2)/H world units, the plane 2 units wide: T/2 texels per unit
+        f_true = 2 * 3.0 * math.tan(math.radians(15)) / H * T / 2.0
+        assert torch.allclose(f[inner], torch.full_like(f[inner], f_true), rtol=1e-3)
+        k_true = min(max(math.ceil(f_true / FOOTPRINT_SPACING), 1), FOOTPRINT_MAX)
+        assert (k[inner] == k_true).all()
+    assert int(k.max()) == FOOTPRINT_MAX                                   # silhouette pixels
+
+
+def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx):
+    """Float64: J u and Jᵀ v of the matrix-free operator equal the directional derivative of the pixel predictions
+    (central differences) and its adjoint; the per-texel blocks equal Jᵀ J restricted to the texel."""
+    sc, fp, _, T = ggx
+    model = sc.model
+    layout = Layout.of(model)
+    sel = fp.select(torch.arange(fp.n_pixels) % 7 == 0)
+    canon = torch.cat([sc.maps[s.name].reshape(T * T, -1).double() for s in layout.specs], -1)
+    canon = canon.clamp(0.05, 0.95)
+    sel.samples = sel.samples.to(dtype=torch.float64)
+    op = PixelOperator(sel, T * T)
+    pred, C = op.linearise(model, layout, canon, _groups(layout))
+    gen = torch.Generator().manual_seed(0)
+    u = torch.randn(T * T, layout.P, generator=gen, dtype=torch.float64)
+    h = 1e-6
+    fd = (op.predict(model, layout, canon + h * u) - op.predict(model, layout, canon - h * u)) / (2 * h)
+    ju = op.apply(C, u)
+    assert float((ju - fd).abs().max()) < 1e-6 * float(ju.abs().max())
+    v = torch.randn(op.R, 3, generator=gen, dtype=torch.float64)
+    assert torch.allclose((ju * v).sum(), (op.apply_t(C, v) * u).sum(), rtol=1e-10)
+    w = torch.ones(op.R, 3, dtype=torch.float64)
+    _, B = op.normal(C, w, w)
+    t = int(op.e_tex[torch.argmax(op.e_share)])
+    for p in range(layout.P):
+        e = torch.zeros(T * T, layout.P, dtype=torch.float64)
+        e[t, p] = 1.0
+        assert torch.allclose(op.apply_t(C, op.apply(C, e))[t], B[t, :, p], rtol=1e-10, atol=1e-14)
+
+
+def test_footprint_fit_recovers_a_texture_finer_than_its_pixels():
+    """Lambert torus, albedo texture with texels about as large as pixels, photos of 64 jittered rays per pixel:
+    the footprint solve recovers the albedo of the well-lit texels the photos resolve far better than treating
+    each pixel as its centre ray. Measured (4 views of 96 px, 64² maps): RMSE on the texels the footprint fit calls
+    resolved 0.0044 against 0.023, on every well-lit texel 0.031 against 0.044; asserted with margins."""
+    sc, fp, obs, T = _scene("lambert", mesh="torus", image_size=96, n_views=4)
+    model = materials.get("lambert")
+    well = torch.zeros(T * T, dtype=torch.bool)
+    ok = (obs.angles.nl.reshape(-1) > 0.3) & (obs.angles.nv.reshape(-1) > 0.3)
+    well[obs.texel[obs.pair_sample[ok]]] = True
+    truth = sc.maps["albedo"].reshape(T * T, 3).double()
+    fits = {use is not None: solve_fast(model, obs, sampling="bilinear", footprints=use) for use in (None, fp)}
+    resolved = well & ~fits[True].unobservable["albedo"].reshape(-1)
+    rmse = {k: [float((f.raw["albedo"].reshape(T * T, 3).double() - truth)[m].square().mean().sqrt())
+                for m in (well, resolved)] for k, f in fits.items()}
+    assert rmse[True][0] < 0.85 * rmse[False][0]
+    assert rmse[True][1] < 0.01 and rmse[True][1] < 0.35 * rmse[False][1]
+    assert float(resolved.sum()) > 0.3 * float(well.sum())
