@@ -130,7 +130,7 @@ def test_misfit_is_a_chi2_per_residual_by_hand():
     from capture.solvers import _CHI2_1_Q10, noise_sigma
 
     model = materials.get("lambert")
-    albedo = torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64) + 0.02 * torch.arange(32, dtype=torch.float64)[:, None]
+    albedo = torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64) + 0.01 * torch.arange(32, dtype=torch.float64)[:, None]
     maps = {"albedo": albedo.reshape(4, 8, 3)}
     obs = synthetic_observations(model, maps, samples_per_texel=8, n_views=2)
     fit = SimpleNamespace(raw=maps)
