@@ -33,8 +33,9 @@ def small_scene(*args, **kw):
 def reconstruct(dataset, *args, **kw):
     """The fit as these photos were made: pixel centres, and the map sampling they were rendered with (a user who
     rendered with nearest sampling says so; reconstruct itself never reads the ground truth to decide)."""
-    if "sampling" not in kw:
-        kw["sampling"] = json.loads((Path(dataset) / "scene.json").read_text())["gt"]["render"]["sampling"]
+    scene = Path(dataset) / "scene.json"
+    if "sampling" not in kw and scene.is_file():
+        kw["sampling"] = json.loads(scene.read_text())["gt"]["render"]["sampling"]
     return R.reconstruct(dataset, *args, **{"footprint": False, **kw})
 
 
