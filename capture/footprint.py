@@ -120,7 +120,7 @@ class PixelFootprints:
     def device(self) -> torch.device:
         return self.radiance.device
 
-    def predict(self, model: Model, maps_flat: Tensor | dict, split=None) -> Tensor:
+    def predict(self, model: Model, maps_flat: dict) -> Tensor:
         """Predicted pixel radiance ``[R, 3]``: ``Σ_{s ∈ i} share_s · L_s`` with ``L_s`` the model's radiance at
         sample s from per-sample canonical parameters (a dict ``name → [S, C]``)."""
         rad = self.samples.predict(model, maps_flat)
@@ -210,7 +210,7 @@ def _curvature(photo: Tensor) -> Tensor:
 
 def footprint_counts(gbuffer, map_size: tuple[int, int],
                      photo: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Per pixel of a pixel-centre G-buffer: the texel footprint ``f``, the sample count ``k`` and a hit mask.
+    """Per pixel of a pixel-centre G-buffer: which pixels to cast, their sample count ``k`` and texel footprint ``f``.
 
     Returns ``(pixels [M], k [M], f [M])`` for the M pixels whose centre ray hits the object, plus the pixels
     next to them (a pixel whose centre misses may still be partly covered; it is cast at :data:`FOOTPRINT_MAX`
@@ -260,7 +260,7 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
     if not (len(lights_per_view) == len(centre_gbuffers) == len(photos) == n) or n == 0:
         raise ObservationError(f"observe_footprints: need one camera, light list, centre G-buffer and photo per "
                                f"view, got {n}, {len(lights_per_view)}, {len(centre_gbuffers)}, {len(photos)}")
-    preps, fps, counts, pix_lists, cast, uniform, partial = [], [], [], [], 0, 0, 0
+    preps, fps, counts, cast, uniform, partial = [], [], [], 0, 0, 0
     for vi in range(n):
         pixels, k, f = footprint_counts(centre_gbuffers[vi], map_size, photos[vi])
         g = render_footprint(mesh, cameras[vi], pixels, k)
@@ -281,7 +281,6 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         ff[pixels] = f
         counts.append(kk)
         fps.append(ff)
-        pix_lists.append(whole)
     samples = observe_views(preps, photos, map_size, lights=lights, bilinear=True, dtype=dtype, clipped=clipped,
                             footprints=True)
     # group the kept samples by (view, pixel): every sample of a kept pixel survives (only unlit ones are dropped,

@@ -227,6 +227,15 @@ def _cast(mesh: Mesh, camera: Camera, xy: Tensor, pixel: Tensor, weight: Tensor,
     )
 
 
+def _strata(pixels: Tensor, k: int, width: int) -> Tensor:
+    """Image positions ``[M·k², 2]`` of the k × k strata centres of each pixel (pixel-major, x fastest inside a
+    pixel — the order of :meth:`renderer.camera.Camera.pixel_grid`)."""
+    off = (torch.arange(k, dtype=torch.float64) + 0.5) / k - 0.5
+    oy, ox = torch.meshgrid(off, off, indexing="ij")
+    centre = torch.stack([(pixels % width).double(), (pixels // width).double()], -1)
+    return (centre[:, None, :] + torch.stack([ox.reshape(-1), oy.reshape(-1)], -1)[None]).reshape(-1, 2)
+
+
 def _check_inputs(mesh, camera, where: str) -> None:
     if not isinstance(mesh, Mesh):
         raise TypeError(f"{where}: mesh must be a renderer.mesh.Mesh, got {type(mesh).__name__}")
@@ -260,10 +269,7 @@ def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1, *, jitter: 
     else:
         # the same strata (pixel-major, x fastest inside a pixel) for the given pixels only
         pixels = _check_pixels(pixels, camera, "render_gbuffer")
-        off = (torch.arange(k, dtype=torch.float64) + 0.5) / k - 0.5
-        oy, ox = torch.meshgrid(off, off, indexing="ij")
-        centre = torch.stack([(pixels % camera.width).double(), (pixels // camera.width).double()], -1)
-        grid = (centre[:, None, :] + torch.stack([ox.reshape(-1), oy.reshape(-1)], -1)[None]).reshape(-1, 2)
+        grid = _strata(pixels, k, camera.width)
         if jitter is not None:
             grid = grid + (torch.rand(grid.shape, generator=jitter, dtype=torch.float64) - 0.5) / k
         pixel = pixels.repeat_interleave(k * k)
@@ -288,11 +294,7 @@ def render_footprint(mesh: Mesh, camera: Camera, pixels: Tensor, counts: Tensor)
     W = camera.width
     for k in torch.unique(counts).tolist():
         p = pixels[counts == k]
-        off = (torch.arange(k, dtype=torch.float64) + 0.5) / k - 0.5
-        oy, ox = torch.meshgrid(off, off, indexing="ij")
-        o = torch.stack([ox.reshape(-1), oy.reshape(-1)], -1)                       # [k², 2]
-        centre = torch.stack([(p % W).double(), (p // W).double()], -1)              # [m, 2]
-        xy.append((centre[:, None, :] + o[None]).reshape(-1, 2))
+        xy.append(_strata(p, k, W))
         pix.append(p.repeat_interleave(k * k))
         wt.append(torch.full((len(p) * k * k,), 1.0 / (k * k), dtype=torch.float64))
     if not xy:
