@@ -34,6 +34,7 @@ roughness-observable texels the fitted lobe is narrower than the photos' directi
 
 from __future__ import annotations
 
+import inspect
 import math
 import operator
 import shutil
@@ -476,11 +477,9 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         old = torch.get_num_threads()
         torch.set_num_threads(threads)
         try:
-            return reconstruct(dataset_path, model, out_dir, force=force, solver=solver, loss=loss,
-                               texture_size=texture_size, dtype=dtype, progress=progress, auto_gain=auto_gain,
-                               auto_chi2=auto_chi2,
-                               max_grid_views=max_grid_views, sampling=sampling, threads=None, known=known,
-                               scalars=scalars, holdout=holdout, **options)
+            # every argument passed on as given (one call, so a new parameter cannot be dropped here)
+            args = {k: v for k, v in locals().items() if k in _RECONSTRUCT_ARGS}
+            return reconstruct(**{**args, "threads": None}, **options)
         finally:
             torch.set_num_threads(old)
     from capture.dataset import load_dataset
@@ -830,6 +829,9 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     _write_outputs(out_dir, ds, fit, obs, renders, photos, report, times, force, max_grid_views, spt, vpt,
                    known_maps)
     return report
+
+#: reconstruct's own parameters, passed on unchanged when it re-enters itself with a thread count set
+_RECONSTRUCT_ARGS = tuple(p for p in inspect.signature(reconstruct).parameters if p != "options")
 
 
 def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, report: Report, times, force,
