@@ -256,49 +256,99 @@ def _check_sizes(sizes) -> list[tuple[int, int]]:
     return out
 
 
-def _needed(padded: list[tuple[int, int]]) -> tuple[int, int]:
-    """Smallest power-of-two square in which the shelf packer fits the padded boxes."""
+def _ceil(x: int, multiple: int) -> int:
+    return -(-x // multiple) * multiple
+
+
+def _extent(padded: list[tuple[int, int]], pos: list[tuple[int, int]], gutter: int) -> tuple[int, int]:
+    """Atlas (width, height) covering the placed padded boxes, their outer gutter hanging over the border."""
+    return (max(x + w for (x, _), (w, _) in zip(pos, padded, strict=True)) - 2 * gutter,
+            max(y + h for (_, y), (_, h) in zip(pos, padded, strict=True)) - 2 * gutter)
+
+
+def _tight(padded: list[tuple[int, int]], gutter: int, multiple: int) -> tuple[int, int]:
+    """The atlas with the shortest longest side (then the smallest area) over a few shelf widths."""
+    order = sorted(range(len(padded)), key=lambda i: (-padded[i][1], -padded[i][0], i))
+    widths, run = {max(w for w, _ in padded)}, 0
+    for i in order:  # a first shelf holding the k tallest boxes, for every k
+        run += padded[i][0]
+        widths.add(run)
     area = sum(w * h for w, h in padded)
-    side = max(max(w for w, _ in padded), max(h for _, h in padded), math.isqrt(area))
-    side = 1 << max(side - 1, 0).bit_length()
-    while _shelf(padded, side, side) is None:
+    widths.add(max(max(w for w, _ in padded), math.isqrt(area) + 1))
+    best = None
+    for width in sorted(widths):
+        if width < max(w for w, _ in padded):
+            continue
+        pos = _shelf(padded, width, 1 << 62)
+        w, h = _extent(padded, pos, gutter)
+        w, h = _ceil(w, multiple), _ceil(h, multiple)
+        key = (max(w, h), w * h, w)
+        if best is None or key < best[0]:
+            best = (key, (w, h))
+    return best[1]
+
+
+def _pow2(padded: list[tuple[int, int]], gutter: int) -> tuple[int, int]:
+    """Smallest power-of-two square in which the shelf packer fits the padded boxes."""
+    side = max(max(w for w, _ in padded), max(h for _, h in padded), math.isqrt(sum(w * h for w, h in padded)))
+    side = 1 << max(side - 2 * gutter - 1, 0).bit_length()
+    while _shelf(padded, side + 2 * gutter, side + 2 * gutter) is None:
         side *= 2
     return side, side
 
 
 def pack_rectangles(
-    sizes: Sequence[tuple[int, int]], atlas_size: int | tuple[int, int] | None = None, gutter: int = 4
+    sizes: Sequence[tuple[int, int]], atlas_size: int | tuple[int, int] | str | None = None, gutter: int = 4,
+    multiple: int = 4,
 ) -> Packing:
     """Place rectangles of the given (width, height) in pixels into one atlas, without overlap.
 
-    Each rectangle is padded by ``gutter`` free texels on every side (so two materials are at least
-    2·gutter apart, and gutter from the atlas border) and the padded boxes are shelf-packed (first fit,
-    decreasing height). ``atlas_size`` None picks the smallest power-of-two square that fits; an int
-    means a square; a (width, height) pair is used as given.
+    Each rectangle is padded by ``gutter`` texels on every side and the padded boxes are shelf-packed
+    (first fit, decreasing height) into the atlas grown by ``gutter`` on every side: two materials are
+    at least 2·gutter apart, but a material may touch the atlas border, its outer gutter falling off the
+    image. The atlas is sampled with clamp-to-edge addressing (the GLB says so), where the border texel
+    is its own gutter at every mip level, so no texel is spent on a border gutter: one 256² material
+    gives a 256² atlas.
+
+    Args:
+        sizes: ``(width, height)`` of each rectangle, positive integers.
+        atlas_size: None — the tight size: the shortest longest side, then the smallest area, over a few
+            shelf widths (the first shelf holding the k tallest boxes, for every k),
+            each side rounded up to ``multiple``; ``"pow2"`` — the smallest power-of-two square that fits;
+            an int — that square; a ``(width, height)`` pair — used as given.
+        gutter: free texels around each rectangle, ≥ 0. multiple: automatic sizes are multiples of it
+            (4: block-compressed formats want whole 4×4 blocks).
 
     Raises:
-        AtlasError: bad sizes, or a fixed atlas too small — the message says the size needed.
+        AtlasError: bad sizes, gutter or size, or a fixed atlas too small — the message says the size needed.
     """
     sizes = _check_sizes(sizes)
-    if not isinstance(gutter, int) or gutter < 0:
+    if not isinstance(gutter, int) or isinstance(gutter, bool) or gutter < 0:
         raise AtlasError(f"gutter must be an integer ≥ 0, got {gutter!r}")
+    if not isinstance(multiple, int) or isinstance(multiple, bool) or multiple < 1:
+        raise AtlasError(f"multiple must be an integer ≥ 1, got {multiple!r}")
     padded = [(w + 2 * gutter, h + 2 * gutter) for w, h in sizes]
     if atlas_size is None:
-        size = _needed(padded)
+        size = _tight(padded, gutter, multiple)
+    elif atlas_size == "pow2":
+        size = _pow2(padded, gutter)
     else:
-        size = (atlas_size, atlas_size) if isinstance(atlas_size, int) else tuple(int(v) for v in atlas_size)
-        if len(size) != 2 or min(size) <= 0:
-            raise AtlasError(f"atlas_size must be a positive int or (width, height), got {atlas_size!r}")
-    pos = _shelf(padded, *size)
+        try:
+            size = (atlas_size, atlas_size) if isinstance(atlas_size, int) else tuple(int(v) for v in atlas_size)
+        except (TypeError, ValueError):
+            size = ()
+        if isinstance(atlas_size, (bool, str)) or len(size) != 2 or min(size) <= 0:
+            raise AtlasError(f"atlas_size must be None, 'pow2', a positive int or (width, height), got {atlas_size!r}")
+    pos = _shelf(padded, size[0] + 2 * gutter, size[1] + 2 * gutter)
     if pos is None:
-        need = _needed(padded)
-        area = sum(w * h for w, h in padded)
+        need = _tight(padded, gutter, 1)
+        area = sum(w * h for w, h in sizes)
         raise AtlasError(
             f"atlas {size[0]}x{size[1]} is too small for {len(sizes)} rectangle(s) of sizes {sizes} with gutter "
-            f"{gutter} (padded area {area} texels); it needs at least {need[0]}x{need[1]} — pass that size, "
+            f"{gutter} ({area} texels of content); it needs at least {need[0]}x{need[1]} — pass that size, "
             "or None to choose it automatically"
         )
-    rects = [Rect(px + gutter, py + gutter, w, h) for (px, py), (w, h) in zip(pos, sizes, strict=True)]
+    rects = [Rect(px, py, w, h) for (px, py), (w, h) in zip(pos, sizes, strict=True)]
     return Packing(rects, (int(size[0]), int(size[1])))
 
 

@@ -131,15 +131,12 @@ def test_encode_bad_inputs():
 
 def _check_packing(sizes, packing, gutter):
     width, height = packing.size
-    boxes = []
+    occ = torch.zeros(height + 2 * gutter, width + 2 * gutter, dtype=torch.int32)
     for (w, h), r in zip(sizes, packing.rects, strict=True):
         assert (r.w, r.h) == (w, h)
-        # gutter present to the atlas border
-        assert r.x >= gutter and r.y >= gutter and r.x + w + gutter <= width and r.y + h + gutter <= height
-        boxes.append((r.x - gutter, r.y - gutter, r.x + w + gutter, r.y + h + gutter))
-    occ = torch.zeros(height, width, dtype=torch.int32)
-    for x0, y0, x1, y1 in boxes:
-        occ[y0:y1, x0:x1] += 1
+        # content inside the atlas; its gutter may hang over the border (clamp-to-edge addressing)
+        assert r.x >= 0 and r.y >= 0 and r.x + w <= width and r.y + h <= height
+        occ[r.y: r.y + h + 2 * gutter, r.x: r.x + w + 2 * gutter] += 1
     # padded boxes never overlap: contents at least 2·gutter apart
     assert occ.max() <= 1
 
@@ -152,16 +149,39 @@ def test_packing_property_no_overlap_gutters(sizes, gutter):
     packing = A.pack_rectangles(sizes, None, gutter)
     _check_packing(sizes, packing, gutter)
     w, h = packing.size
-    assert w == h and w & (w - 1) == 0  # power-of-two square
-    # the automatic size is the smallest power of two that fits: half of it fails
-    if w > 1 and w // 2 >= max(max(s) + 2 * gutter for s in sizes):
-        with pytest.raises(A.AtlasError, match=f"needs at least {w}x{w}"):
-            A.pack_rectangles(sizes, w // 2, gutter)
+    assert w % 4 == 0 and h % 4 == 0
+    # tight: no side longer than one shelf of every box, and the size it reports fits as a fixed size
+    assert max(w, h) <= max(sum(s[0] + 2 * gutter for s in sizes), max(s[1] for s in sizes)) + 3
+    _check_packing(sizes, A.pack_rectangles(sizes, (w, h), gutter), gutter)
+    p2 = A.pack_rectangles(sizes, "pow2", gutter)
+    _check_packing(sizes, p2, gutter)
+    side = p2.size[0]
+    assert p2.size == (side, side) and side & (side - 1) == 0
+    if side > 1 and side // 2 >= max(max(s) for s in sizes):  # the smallest power of two: half of it fails
+        with pytest.raises(A.AtlasError, match="needs at least"):
+            A.pack_rectangles(sizes, side // 2, gutter)
+
+
+def test_one_material_fills_its_atlas():
+    # no texel spent on a border gutter: one 256² material is a 256² atlas (100 % used)
+    p = A.pack_rectangles([(256, 256)], None, gutter=4)
+    assert p.size == (256, 256) and p.rects == [A.Rect(0, 0, 256, 256)]
+    assert A.pack_rectangles([(256, 256)], "pow2", gutter=4).size == (256, 256)
+    assert A.pack_rectangles([(250, 130)], None, gutter=4).size == (252, 132)  # multiples of 4
+    # two: 2·gutter between them, nothing at the border; four 256²: a 520² square, 97 % used
+    p = A.pack_rectangles([(256, 256)] * 2, None, gutter=4)
+    assert p.size == (256, 520) and p.rects[1].y - (p.rects[0].y + 256) == 8
+    p = A.pack_rectangles([(256, 256)] * 4, None, gutter=4)
+    assert p.size == (520, 520)
+    _check_packing([(256, 256)] * 4, p, 4)
 
 
 def test_fixed_atlas_too_small_says_size_needed():
-    with pytest.raises(A.AtlasError, match=r"atlas 64x64 is too small.*needs at least 256x256"):
+    with pytest.raises(A.AtlasError, match=r"atlas 64x64 is too small.*needs at least 138x200"):
         A.pack_rectangles([(100, 50), (30, 200)], 64, gutter=4)
+    p = A.pack_rectangles([(100, 50), (30, 200)], (138, 200), gutter=4)
+    assert p.size == (138, 200)
+    _check_packing([(100, 50), (30, 200)], p, 4)
     p = A.pack_rectangles([(100, 50), (30, 200)], (300, 220), gutter=4)
     assert p.size == (300, 220)
     _check_packing([(100, 50), (30, 200)], p, 4)
@@ -169,6 +189,10 @@ def test_fixed_atlas_too_small_says_size_needed():
         A.pack_rectangles([(0, 5)])
     with pytest.raises(A.AtlasError, match="non-empty"):
         A.pack_rectangles([])
+    with pytest.raises(A.AtlasError, match="atlas_size must be"):
+        A.pack_rectangles([(4, 4)], "square")
+    with pytest.raises(A.AtlasError, match="gutter"):
+        A.pack_rectangles([(4, 4)], None, -1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -210,9 +234,10 @@ def test_compose_no_bleed_between_materials():
     r0, r1 = p.rects
     assert torch.equal(A.extract(atlas, r0), torch.full((10, 7, 4), 0.25))
     assert torch.equal(A.extract(atlas, r1), torch.full((5, 9, 4), 0.75))
-    # the gutter rings hold each material's own value
-    assert torch.equal(atlas[r0.y - 2: r0.y + r0.h + 2, r0.x - 2: r0.x + r0.w + 2], torch.full((14, 11, 4), 0.25))
-    assert torch.equal(atlas[r1.y - 2: r1.y + r1.h + 2, r1.x - 2: r1.x + r1.w + 2], torch.full((9, 13, 4), 0.75))
+    # the gutter rings (inside the atlas) hold each material's own value
+    for r, value in ((r0, 0.25), (r1, 0.75)):
+        ring = atlas[max(r.y - 2, 0): r.y + r.h + 2, max(r.x - 2, 0): r.x + r.w + 2]
+        assert torch.equal(ring, torch.full_like(ring, value))
 
 
 # --------------------------------------------------------------------------------------------
