@@ -52,21 +52,28 @@ from .outputs import atomic_folder, check_output, jsonable
 __all__ = [
     "FORMAT", "VERSION", "ENCODINGS", "DatasetError", "DatasetWarning", "View", "GroundTruth", "Photo", "Dataset",
     "load_dataset", "write_dataset", "model_from_spec", "model_spec", "camera_sees_mesh", "dataset_root",
-    "degenerate_faces", "winding_numbers", "EXPOSURE_RANGE", "MAX_LIGHT",
+    "degenerate_faces", "winding_numbers", "EXPOSURE_RANGE", "MAX_LIGHT", "JPEG_SUFFIXES", "LIGHT_FRAMES",
+    "MASK_DIR", "read_raster", "light_to_world",
 ]
 
 #: The ``format`` string of every shadecap dataset's ``scene.json``.
 FORMAT = "shadecap-dataset"
 #: The newest format version this code reads and the one it writes.
 VERSION = 1
-#: Colour encodings: "linear" → EXR files holding exposure·L; "srgb" → PNG files, sRGB-encoded.
-ENCODINGS = {"linear": (".exr",), "srgb": (".png",)}
+#: Colour encodings and the image files each accepts: "linear" → EXR (float) or 16-bit / float TIFF holding
+#: exposure·L; "srgb" → 8/16-bit PNG or TIFF, or 8-bit JPEG, sRGB-encoded.
+ENCODINGS = {"linear": (".exr", ".tif", ".tiff"), "srgb": (".png", ".jpg", ".jpeg", ".tif", ".tiff")}
+#: Image suffixes that are JPEG: loading them warns (a camera's JPEG is not pure sRGB, see docs/dataset-format.md).
+JPEG_SUFFIXES = (".jpg", ".jpeg")
+#: Light ``frame`` values: "world" (default) or "camera" (the view's OpenCV camera frame, resolved at load).
+LIGHT_FRAMES = ("world", "camera")
 SCENE_FILE = "scene.json"
 IMAGE_DIR = "images"
+MASK_DIR = "masks"
 GT_DIR = "gt"
 _IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg", ".tif", ".tiff")
 _TOP_KEYS = {"format", "version", "mesh", "encoding", "bits", "saturation", "images", "gt", "meta"}
-_VIEW_KEYS = {"file", "camera", "lights", "exposure", "name"}
+_VIEW_KEYS = {"file", "camera", "lights", "exposure", "name", "mask"}
 _GT_KEYS = {"model", "maps", "regions", "render", "photo"}
 #: Exposures are accepted strictly inside this range: beyond it, pixel / exposure leaves float32's range.
 EXPOSURE_RANGE = (1e-30, 1e30)
@@ -233,6 +240,8 @@ class View:
         file: path of the image relative to the dataset folder (``images/000.exr``); on writing,
             an empty string lets :func:`write_dataset` name it.
         name: optional label.
+        mask: optional mask image relative to the dataset folder (``masks/000.png``; nonzero = the object,
+            usable; zero = not usable), or "" for none.
     """
 
     camera: Camera
@@ -240,6 +249,7 @@ class View:
     exposure: float = 1.0
     file: str = ""
     name: str = ""
+    mask: str = ""
 
 
 @dataclass
@@ -279,11 +289,24 @@ class Photo:
             pixels are kept as they are for the observation stage to drop.
         saturated: ``[H, W]`` bool, some channel reached the saturation level (value unknown).
         nonfinite: ``[H, W]`` bool, some channel is NaN or inf.
+        mask: ``[H, W]`` bool, True where the pixel may be used (the view's ``mask`` file is nonzero and the
+            image's alpha channel, when it has one, is at least half its full value); None = every pixel.
     """
 
     radiance: Tensor
     saturated: Tensor
     nonfinite: Tensor
+    mask: Tensor | None = None
+
+    @property
+    def unusable(self) -> Tensor:
+        """``[H, W]`` bool: pixels whose value must not be fitted — saturated, or masked out (``~mask``).
+
+        This is what the observation stage is given as its ``clipped`` masks (it counts these pixels under the
+        drop reason "clipped")."""
+        if self.mask is None:
+            return self.saturated
+        return self.saturated | ~self.mask.to(self.saturated.device)
 
 
 @dataclass
@@ -333,15 +356,22 @@ class Dataset:
 
     def read_file_image(self, i: int) -> Tensor:
         """View ``i``'s image as decoded file values ``[H, W, 3]`` float32 (validated, not divided by exposure)."""
-        img, _ = _read_view_image(self.root, self.views[i], i, self.encoding, self.bits)
+        img, _, _ = _read_view_image(self.root, self.views[i], i, self.encoding, self.bits)
         return img
+
+    def read_mask(self, i: int) -> Tensor | None:
+        """View ``i``'s usable-pixel mask ``[H, W]`` bool (mask file AND alpha), or None when it has neither."""
+        _, _, alpha = _read_view_image(self.root, self.views[i], i, self.encoding, self.bits)
+        return _combine_masks(alpha, _read_view_mask(self.root, self.views[i], i))
 
     def load_images(self, dtype: torch.dtype = torch.float32, device=None) -> list[Photo]:
         """Every image as linear radiance: decode (sRGB for PNG), divide by the view's exposure.
 
         Returns:
             one :class:`Photo` per view; ``saturated`` marks pixels whose file value reached
-            :attr:`saturation` in any channel (compared in file units before dividing).
+            :attr:`saturation` in any channel (compared in file units before dividing); ``mask`` is the
+            usable-pixel mask (the view's mask file, and the alpha channel of an RGBA image), all True when
+            the view has neither; :attr:`Photo.unusable` is saturated or masked out.
 
         Raises:
             DatasetError: an image changed on disk since loading and no longer validates.
@@ -349,14 +379,18 @@ class Dataset:
         sat = self.saturation_linear()
         out = []
         for i, view in enumerate(self.views):
-            img, _ = _read_view_image(self.root, view, i, self.encoding, self.bits)
+            img, _, alpha = _read_view_image(self.root, view, i, self.encoding, self.bits)
+            mask = _combine_masks(alpha, _read_view_mask(self.root, view, i))
+            if mask is None:
+                mask = torch.ones(img.shape[:2], dtype=torch.bool)
             nonfinite = ~torch.isfinite(img).all(-1)
             if sat is None:
                 saturated = torch.zeros(img.shape[:2], dtype=torch.bool)
             else:
                 saturated = (torch.nan_to_num(img, nan=-math.inf) >= sat * (1 - 1e-6)).any(-1)
             rad = img.to(torch.float64) / float(view.exposure)
-            out.append(Photo(rad.to(dtype=dtype, device=device), saturated.to(device), nonfinite.to(device)))
+            out.append(Photo(rad.to(dtype=dtype, device=device), saturated.to(device), nonfinite.to(device),
+                             mask.to(device)))
         return out
 
 
@@ -507,8 +541,55 @@ def _png_bit_depth(path: Path) -> int | None:
     return None
 
 
-def _read_view_image(root: Path, view: View, i: int, encoding: str, bits: int | None) -> tuple[Tensor, int]:
-    """Read and check one view's image → (decoded file values ``[H, W, 3]`` float32, non-finite pixel count)."""
+def read_raster(path) -> tuple[np.ndarray, int | None]:
+    """Read a PNG, JPEG or TIFF file as stored → ``(array [H, W, C], bits)``.
+
+    ``cv2.imdecode(..., IMREAD_UNCHANGED)``: no colour conversion, no EXIF rotation (pixels are used as stored,
+    which is how calibration tools see them), channels reordered to RGB(A). ``bits`` is 8 or 16 for integer
+    samples (the array is ``uint8`` / ``uint16``), None for float TIFF (``float32``). A PNG without its IEND
+    chunk or a JPEG without its end-of-image marker is refused as truncated.
+
+    Raises:
+        ImageIOError: missing, unreadable, truncated or an unsupported sample type; the message names the file.
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise ImageIOError(f"{path}: no such image file")
+    data = path.read_bytes()
+    if not data:
+        raise ImageIOError(f"{path}: is empty (0 bytes); the file was truncated or never written")
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and not data.rstrip(b"\0").endswith(b"IEND\xaeB`\x82"):
+        raise ImageIOError(f"{path}: PNG is truncated (no IEND chunk at the end); rewrite the file")
+    if data[:2] == b"\xff\xd8" and not data.rstrip(b"\0").endswith(b"\xff\xd9"):
+        raise ImageIOError(f"{path}: JPEG is truncated (no end-of-image marker); copy the file again")
+    arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise ImageIOError(f"{path}: OpenCV could not decode the image; the file is corrupt or not an image")
+    if arr.dtype == np.uint8:
+        bits = 8
+    elif arr.dtype == np.uint16:
+        bits = 16
+    elif arr.dtype == np.float32:
+        bits = None
+    else:
+        raise ImageIOError(f"{path}: unsupported sample type {arr.dtype}; use 8/16-bit integer or 32-bit float "
+                           "samples")
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    c = arr.shape[2]
+    if c == 3:
+        arr = arr[:, :, ::-1]
+    elif c == 4:
+        arr = arr[:, :, [2, 1, 0, 3]]
+    return np.ascontiguousarray(arr), bits
+
+
+def _read_view_image(root: Path, view: View, i: int, encoding: str,
+                     bits: int | None) -> tuple[Tensor, int, Tensor | None]:
+    """Read and check one view's image → (decoded file values ``[H, W, 3]`` float32, non-finite pixel count,
+    alpha mask ``[H, W]`` bool — alpha at least half its full value — or None when the image has no alpha)."""
     path = root / view.file
     fld = f"images[{i}].file"
     suffix = path.suffix.lower()
@@ -519,14 +600,29 @@ def _read_view_image(root: Path, view: View, i: int, encoding: str, bits: int | 
         raise _err(path, None, f"image listed in {SCENE_FILE} ({fld}) does not exist",
                    "add the file or remove its entry")
     try:
-        if encoding == "linear":
+        if suffix == ".exr":
             img = read_exr(path)
         else:
-            depth = _png_bit_depth(path)
-            if depth is not None and depth != bits:
-                raise _err(path, None, f"PNG has {depth}-bit samples but {SCENE_FILE} says bits = {bits}",
-                           f"write the image with {bits} bits or fix 'bits'")
-            img = read_png(path, "srgb")
+            arr, depth = read_raster(path)
+            kind = {".jpg": "JPEG", ".jpeg": "JPEG", ".png": "PNG"}.get(suffix, "TIFF")
+            if encoding == "srgb":
+                if depth is None:
+                    raise _err(path, None, f"{kind} holds float samples, which are linear values, but the dataset's "
+                               "encoding is 'srgb'", "set \"encoding\": \"linear\" or write 8/16-bit sRGB images")
+                if depth != bits:
+                    raise _err(path, None, f"{kind} has {depth}-bit samples but {SCENE_FILE} says bits = {bits}",
+                               f"write the image with {bits} bits or fix 'bits'")
+            elif depth == 8:
+                raise _err(path, None, f"{kind} has 8-bit samples, too coarse for linear values (the shadows "
+                           "would lose most of their levels)", "write 16-bit or float TIFF / EXR linear images, "
+                           "or set \"encoding\": \"srgb\" for sRGB-encoded 8-bit images")
+            x = arr.astype(np.float32)
+            if depth is not None:
+                x /= np.float32((1 << depth) - 1)
+            img = torch.from_numpy(x)
+            if encoding == "srgb":
+                ncol = 3 if img.shape[2] == 4 else (1 if img.shape[2] == 2 else img.shape[2])
+                img = torch.cat([decode(img[..., :ncol], "srgb"), img[..., ncol:]], dim=-1)
     except ImageIOError as exc:
         raise _err(path, None, f"unreadable image ({fld}): {exc}", "rewrite the file") from None
     H, W = view.camera.height, view.camera.width
@@ -534,16 +630,91 @@ def _read_view_image(root: Path, view: View, i: int, encoding: str, bits: int | 
         raise _err(path, None, f"image is {img.shape[1]}×{img.shape[0]} px but its camera ({SCENE_FILE} "
                    f"images[{i}].camera) is {W}×{H}", "resize the image or fix the camera's width/height and K")
     c = img.shape[2]
+    alpha = None
+    if c in (2, 4):  # gray+alpha or RGBA: alpha is the mask (linear, never sRGB-decoded)
+        alpha = img[..., -1] >= 0.5
+        img = img[..., :-1]
+        c -= 1
     if c == 1:
         img = img.expand(H, W, 3).contiguous()
     elif c != 3:
-        raise _err(path, None, f"image has {c} channels; a photo must be RGB (3) or gray (1)",
-                   "drop the alpha channel")
+        raise _err(path, None, f"image has {c} channels; a photo must be RGB (3) or gray (1), optionally with an "
+                   "alpha channel (the mask)", "write it as RGB or RGBA")
     finite = torch.isfinite(img).all(-1)
     bad = int((~finite).sum())
     if bad == H * W:
         raise _err(path, None, f"every pixel ({bad}) is NaN or inf", "re-export the image")
-    return img, bad
+    return img, bad, alpha
+
+
+def _read_view_mask(root: Path, view: View, i: int) -> Tensor | None:
+    """View ``i``'s mask file as ``[H, W]`` bool (nonzero in some colour channel = usable), or None without one."""
+    if not view.mask:
+        return None
+    path = root / view.mask
+    fld = f"images[{i}].mask"
+    if path.suffix.lower() != ".png":
+        raise _err(SCENE_FILE, fld, f"'{view.mask}' must be a .png mask (lossless; nonzero = the object)",
+                   "convert the mask to PNG")
+    if not path.is_file():
+        raise _err(path, None, f"mask listed in {SCENE_FILE} ({fld}) does not exist",
+                   "add the file or remove the entry's 'mask'")
+    try:
+        arr, _ = read_raster(path)
+    except ImageIOError as exc:
+        raise _err(path, None, f"unreadable mask ({fld}): {exc}", "rewrite the file") from None
+    H, W = view.camera.height, view.camera.width
+    if arr.shape[0] != H or arr.shape[1] != W:
+        raise _err(path, None, f"mask is {arr.shape[1]}×{arr.shape[0]} px but its image's camera is {W}×{H}",
+                   "write the mask at the image's size")
+    colour = arr[..., :3] if arr.shape[2] >= 3 else arr[..., :1]
+    return torch.from_numpy((colour != 0).any(-1))
+
+
+def _combine_masks(a: Tensor | None, b: Tensor | None) -> Tensor | None:
+    if a is None:
+        return b
+    return a if b is None else a & b
+
+
+def light_to_world(d: Mapping, camera: Camera) -> dict:
+    """A light entry of ``scene.json`` with its optional ``"frame"`` resolved: the same entry in world coordinates.
+
+    ``"frame": "world"`` (the default) changes nothing. ``"frame": "camera"`` means the light's vectors are in the
+    view's OpenCV camera frame (x right, y down, z forward, world units): a flash fixed to the camera at
+    ``position`` p_c is at ``Rᵀ (p_c − t)`` in the world (the camera centre plus ``Rᵀ p_c``); a ``directional``
+    light's ``direction`` and a ``hemisphere`` light's ``up`` are rotated by ``Rᵀ``. An ``sh`` light cannot be
+    given in the camera frame. The returned dict has no ``frame`` key.
+
+    Raises:
+        LightError: an unknown frame, a camera-frame SH light, or a vector that is not 3 finite numbers.
+    """
+    if not isinstance(d, Mapping):
+        return d  # light_from_dict names the problem
+    frame = d.get("frame", "world")
+    out = {k: v for k, v in d.items() if k != "frame"}
+    if frame not in LIGHT_FRAMES:
+        raise LightError(f"'frame' must be one of {list(LIGHT_FRAMES)}, got {frame!r}")
+    if frame == "world":
+        return out
+    kind = d.get("type")
+    keys = {"point": "position", "directional": "direction", "hemisphere": "up"}
+    if kind == "sh":
+        raise LightError("an 'sh' light cannot be given in the camera frame; give its coefficients in world "
+                         "coordinates (drop \"frame\": \"camera\")")
+    key = keys.get(kind)
+    if key is None or key not in d:
+        return out  # unknown type or a missing field: light_from_dict names it
+    try:
+        vec = np.asarray(d[key], dtype=np.float64)
+    except (TypeError, ValueError):
+        vec = np.zeros(0)
+    if vec.shape != (3,) or not np.isfinite(vec).all():
+        raise LightError(f"{kind} light: '{key}' must be 3 finite numbers, got {d[key]!r}")
+    R = camera.R.detach().cpu().double().numpy()
+    t = camera.t.detach().cpu().double().numpy()
+    out[key] = (R.T @ (vec - t)).tolist() if kind == "point" else (R.T @ vec).tolist()
+    return out
 
 
 def _as_list(x, file, fld, nonempty=True) -> list:
@@ -684,6 +855,7 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
         lights = []
         for j, d in enumerate(lights_raw):
             try:
+                d = light_to_world(d, cam)
                 lights.append(light_from_dict(d))
             except LightError as exc:
                 raise _err(scene, f"images[{i}].lights[{j}]", str(exc)) from None
@@ -706,15 +878,25 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
         if not sees:
             raise _err(scene, f"images[{i}].camera", f"the camera does not see the mesh: {why}",
                        "check R and t (world-to-camera, OpenCV: x right, y down, z forward) and the mesh units")
-        views.append(View(cam, lights, exposure, str(Path(e["file"]).as_posix()), name))
+        mask = e.get("mask") or ""
+        if mask:
+            _relative_file(root, mask, scene, f"images[{i}].mask")
+            mask = str(Path(mask).as_posix())
+        views.append(View(cam, lights, exposure, str(Path(e["file"]).as_posix()), name, mask))
     _warn_inside(scene, mesh, views, msgs)
+    jpegs = [v.file for v in views if Path(v.file).suffix.lower() in JPEG_SUFFIXES]
+    if jpegs:
+        _warn(msgs, f"{scene}: {len(jpegs)} image(s) are JPEG ({', '.join(jpegs[:3])}{' ...' if len(jpegs) > 3 else ''}"
+              "): a camera's JPEG is not pure sRGB (its maker's tone curve, white balance, sharpening, noise "
+              "reduction and compression change the values), so the recovered albedo is approximate; for "
+              "measurements convert the RAW files to linear 16-bit TIFF or EXR (docs/importing.md)")
 
     # image count: the images/ folder holds exactly the listed images
     img_dir = root / IMAGE_DIR
     if img_dir.is_dir():
         on_disk = sorted(f"{IMAGE_DIR}/{f.name}" for f in img_dir.iterdir()
                          if f.is_file() and f.suffix.lower() in _IMAGE_SUFFIXES and not f.name.startswith("."))
-        listed = {os.path.normpath(v.file) for v in views}
+        listed = {os.path.normpath(v.file) for v in views} | {os.path.normpath(v.mask) for v in views if v.mask}
         unlisted = [f for f in on_disk if os.path.normpath(f) not in listed]
         if unlisted:
             raise _err(scene, "images", f"lists {len(views)} image(s) but {img_dir} holds {len(on_disk)} image "
@@ -723,7 +905,11 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
 
     if check_images:
         for i, view in enumerate(views):
-            _, bad = _read_view_image(root, view, i, encoding, bits)
+            _, bad, alpha = _read_view_image(root, view, i, encoding, bits)
+            mask = _combine_masks(alpha, _read_view_mask(root, view, i))
+            if mask is not None and not bool(mask.any()):
+                _warn(msgs, f"{root / (view.mask or view.file)}: images[{i}]: the mask excludes every pixel; the view "
+                      "adds nothing to the fit (check the mask's polarity: nonzero = the object)")
             if bad:
                 H, W = view.camera.height, view.camera.width
                 _warn(msgs, f"{root / view.file}: {bad} of {H * W} pixel(s) are NaN or inf; they are kept and the "
@@ -848,6 +1034,7 @@ def write_dataset(
     meta: Mapping | None = None,
     overwrite: bool = False,
     validate: bool = True,
+    masks: Sequence[Tensor | None] | None = None,
 ) -> Path:
     """Write a dataset folder atomically and return its path.
 
@@ -871,6 +1058,8 @@ def write_dataset(
         meta: free-form JSON-able metadata.
         overwrite: replace an existing ``out_dir``.
         validate: load the written folder before moving it in place (recommended).
+        masks: optional, per view a ``[H, W]`` bool mask (True = the object, usable) or None; each given one is
+            written as an 8-bit PNG (255 / 0) at the view's ``mask`` path or ``masks/NNN.png``.
 
     Raises:
         DatasetError: bad arguments, ``out_dir`` exists, or validation of the written folder failed.
@@ -885,6 +1074,9 @@ def write_dataset(
     if len(views) == 0 or len(views) != len(images):
         raise DatasetError(f"write_dataset: need one image per view and at least one view, got {len(views)} views "
                            f"and {len(images)} images")
+    if masks is not None and len(masks) != len(views):
+        raise DatasetError(f"write_dataset: masks must hold one entry (a mask or None) per view, got {len(masks)} for "
+                           f"{len(views)} views")
     check_output(out, force=overwrite, error=DatasetError, force_flag="overwrite=True (--overwrite)")
     if encoding == "srgb" and saturation is None:
         saturation = (1 << bits) - 1
@@ -893,14 +1085,15 @@ def write_dataset(
     try:
         with atomic_folder(out, force=overwrite, error=DatasetError,
                            force_flag="overwrite=True (--overwrite)") as tmp:
-            _write_into(tmp, mesh, views, images, encoding, ext, bits, saturation, half, gt, meta, validate)
+            _write_into(tmp, mesh, views, images, encoding, ext, bits, saturation, half, gt, meta, validate, masks)
     except DatasetError as exc:
         raise DatasetError(f"{exc} (nothing was written to {out})" if "nothing was written" not in str(exc)
                            else str(exc)) from None
     return out
 
 
-def _write_into(tmp: Path, mesh, views, images, encoding, ext, bits, saturation, half, gt, meta, validate) -> None:
+def _write_into(tmp: Path, mesh, views, images, encoding, ext, bits, saturation, half, gt, meta, validate,
+                masks=None) -> None:
     """Write a dataset's files into the (temporary) folder ``tmp`` and, with ``validate``, load it back."""
     (tmp / IMAGE_DIR).mkdir()
     save_mesh(mesh, tmp / "mesh.obj")
@@ -931,6 +1124,20 @@ def _write_into(tmp: Path, mesh, views, images, encoding, ext, bits, saturation,
                  "lights": [light_to_dict(light) for light in view.lights], "exposure": float(view.exposure)}
         if view.name:
             entry["name"] = view.name
+        m = masks[i] if masks is not None else None
+        if m is not None:
+            if not isinstance(m, Tensor) or tuple(m.shape) != (view.camera.height, view.camera.width):
+                raise DatasetError(f"write_dataset: masks[{i}] must be a bool tensor [H, W] = "
+                                   f"[{view.camera.height}, {view.camera.width}], got "
+                                   f"{tuple(m.shape) if isinstance(m, Tensor) else type(m).__name__}")
+            mrel = view.mask or f"{MASK_DIR}/{i:03d}.png"
+            mdest = _relative_file(tmp, mrel, "write_dataset", f"views[{i}].mask")
+            mdest.parent.mkdir(parents=True, exist_ok=True)
+            write_png(mdest, m.detach().cpu().bool().double(), bits=8, transfer="linear")
+            entry["mask"] = mrel
+        elif view.mask:
+            raise DatasetError(f"write_dataset: views[{i}].mask names '{view.mask}' but no mask was given for it; "
+                               "pass masks=[...] or clear the view's mask")
         entries.append(entry)
     doc = {"format": FORMAT, "version": VERSION, "mesh": "mesh.obj", "encoding": encoding}
     if encoding == "srgb":
