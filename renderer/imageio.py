@@ -44,6 +44,7 @@ from torch import Tensor
 __all__ = [
     "ImageIOError", "ImageNotFoundError", "TRANSFERS", "decode", "encode", "read_exr", "read_image",
     "read_png", "write_exr", "write_image", "write_png", "atomic_write_bytes", "apply_umask", "current_umask",
+    "REC709_CHROMATICITIES",
 ]
 
 #: Names accepted by :func:`encode` / :func:`decode`.
@@ -274,7 +275,12 @@ def _check_readable(path: Path) -> None:
 # EXR
 
 
-def write_exr(path, img, half: bool = False, allow_nonfinite: bool = False) -> None:
+#: CIE xy of the Rec. 709 / sRGB primaries and the D65 white point, as the EXR ``chromaticities`` attribute
+#: orders them: red x, y, green x, y, blue x, y, white x, y.
+REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+
+
+def write_exr(path, img, half: bool = False, allow_nonfinite: bool = False, chromaticities=None) -> None:
     """Write a linear image as an OpenEXR file (ZIP compression), atomically.
 
     Args:
@@ -283,6 +289,9 @@ def write_exr(path, img, half: bool = False, allow_nonfinite: bool = False) -> N
             torch tensor (any device, any float dtype) or numpy array; linear values, any range.
         half: store 16-bit half floats (≈ 3 significant digits, |x| ≤ 65504) instead of 32-bit floats.
         allow_nonfinite: write NaN/inf values instead of refusing them.
+        chromaticities: None (no attribute, the default), ``"rec709"`` (:data:`REC709_CHROMATICITIES`: the
+            sRGB primaries, D65 white) or 8 numbers (red, green, blue, white CIE xy) for the file's
+            ``chromaticities`` attribute, which says what the RGB values mean.
 
     Raises:
         ImageIOError: wrong shape, NaN/inf (unless allowed), values beyond the half range with
@@ -310,6 +319,17 @@ def write_exr(path, img, half: bool = False, allow_nonfinite: bool = False) -> N
     names = {1: ("Y",), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}[c]
     channels = {name: np.ascontiguousarray(arr[:, :, k].astype(dtype)) for k, name in enumerate(names)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if chromaticities is not None:
+        xy = REC709_CHROMATICITIES if isinstance(chromaticities, str) and chromaticities.lower() == "rec709" \
+            else chromaticities
+        try:
+            xy = tuple(float(v) for v in xy)
+        except (TypeError, ValueError):
+            xy = ()
+        if len(xy) != 8 or not all(np.isfinite(xy)):
+            raise ImageIOError(f"{path}: chromaticities must be 'rec709' or 8 finite numbers (red, green, blue, "
+                               f"white CIE xy), got {chromaticities!r}")
+        header["chromaticities"] = xy
 
     def writer(tmp):
         with OpenEXR.File(header, channels) as f:
