@@ -554,7 +554,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                        "view_light_pairs": n_pairs}
     def observe(size: int) -> Observations:
         return observe_views(preps, [p.radiance for p in photos], (size, size), exposure=1.0,
-                             clipped=[p.saturated for p in photos], lights=all_lights, dtype=dtype,
+                             clipped=[p.unusable for p in photos], lights=all_lights, dtype=dtype,
                              bilinear=sampling == "bilinear")
 
     obs = observe(texture_size)
@@ -565,7 +565,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         def footprints(size: int):
             return observe_footprints(ds.mesh, [v.camera for v in ds.views], [v.lights for v in ds.views],
                                       [p.gbuffer for p in preps], [p.radiance for p in photos], (size, size),
-                                      lights=all_lights, clipped=[p.saturated for p in photos], dtype=dtype)
+                                      lights=all_lights, clipped=[p.unusable for p in photos], dtype=dtype)
 
         fp_all = footprints(texture_size)
         fp = fp_all.select_views(fit_views) if held_views else fp_all
