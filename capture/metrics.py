@@ -10,6 +10,9 @@
   estimate-independent counterpart of the fit's observability (judged at its estimate), for synthetic scenes.
 * :func:`image_metrics` — PSNR and SSIM (``kornia.metrics``) of a re-rendered view against its
   photo, over the image (background is 0 in both), with the peak taken as the photo's maximum.
+* :func:`coverage_advice` — which directions the photos miss (texels never seen, never lit, never shown a
+  highlight at useful angles), where those texels' normals point, and what views or lights to add;
+  :func:`texel_normals` gives it the surface's normal per texel from the mesh.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-__all__ = ["map_errors", "observability_errors", "determined_at_truth", "image_metrics", "MetricsError"]
+__all__ = ["map_errors", "observability_errors", "determined_at_truth", "image_metrics", "MetricsError",
+           "texel_normals", "coverage_advice", "HIGHLIGHT_DEG", "ADVICE_MIN_FRACTION"]
 
 
 class MetricsError(ValueError):
@@ -230,3 +234,216 @@ def highlight_texels(obs, roughness: Tensor, min_angle_deg: float = 1.0) -> Tens
     out = torch.zeros(H * W, dtype=torch.bool, device=obs.device)
     out[tex[ok]] = True
     return out.reshape(H, W)
+
+
+# ----------------------------------------------------------------------------------- coverage advice
+
+#: :func:`coverage_advice`: a (sample, light) pair shows a texel's highlight when its half vector is within this many
+#: degrees of the normal (a GGX lobe of roughness 0.3 falls to half its peak at ~4°, of roughness 0.5 at ~12°)...
+HIGHLIGHT_DEG = 10.0
+#: ... and a direction is named in the advice when at least this fraction of the surface texels misses it.
+ADVICE_MIN_FRACTION = 0.01
+
+
+def texel_normals(mesh, map_size: tuple[int, int], samples_per_texel: float = 8.0, seed: int = 0,
+                  chunk: int = 1 << 20, max_points: int = 1 << 23) -> tuple[Tensor, Tensor]:
+    """The surface's normal in each texel of a ``map_size`` map, from the mesh's UV charts.
+
+    Points are drawn on the faces in proportion to their area *in UV space* (``samples_per_texel`` per texel of the
+    charts on average, at most ``max_points`` in all, fixed seed), their UVs and interpolated shading normals are
+    accumulated per texel (:func:`renderer.texture.texel_of`) and normalised. A random draw leaves a texel of the
+    charts uncovered with probability about e^(−points per texel): 0.03 % at the default 8 (256² maps); 2K maps are
+    capped at 2 per texel (13 % uncovered, left out of the surface — the fractions of :func:`coverage_advice` are
+    still those of the surface).
+
+    Args:
+        mesh: a :class:`renderer.mesh.Mesh` (UVs and normals per vertex).
+        map_size: ``(H, W)`` of the maps.
+
+    Returns:
+        ``(normals [H, W, 3] float32 in the dataset frame, zero where no chart covers the texel; covered [H, W] bool)``.
+    """
+    from renderer.texture import texel_of
+
+    if not (isinstance(map_size, (tuple, list)) and len(map_size) == 2
+            and all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in map_size)):
+        raise MetricsError(f"texel_normals: map_size must be (H, W), two positive integers, got {map_size!r}")
+    if isinstance(samples_per_texel, bool) or not isinstance(samples_per_texel, (int, float)) \
+            or not 0 < samples_per_texel <= 64:
+        raise MetricsError(f"texel_normals: samples_per_texel must be a number in (0, 64], got {samples_per_texel!r}")
+    for attr in ("faces", "uvs", "normals"):
+        if not isinstance(getattr(mesh, attr, None), Tensor):
+            raise MetricsError(f"texel_normals: mesh must be a renderer.mesh.Mesh (with {attr}), got "
+                               f"{type(mesh).__name__}")
+    H, W = map_size
+    f = mesh.faces.long()
+    uv = mesh.uvs.double()[f]                                     # [F, 3, 2]
+    nrm = mesh.normals.double()[f]                                # [F, 3, 3]
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).abs()
+    acc = torch.zeros(H * W, 3, dtype=torch.float64)
+    total = float(area.sum())
+    if total > 0:
+        n_points = min(max(int(math.ceil(samples_per_texel * total * H * W)), 1), max_points)
+        gen = torch.Generator().manual_seed(seed)
+        for start in range(0, n_points, chunk):
+            k = min(chunk, n_points - start)
+            face = torch.multinomial(area, k, replacement=True, generator=gen)
+            a, b = torch.rand(k, generator=gen, dtype=torch.float64), torch.rand(k, generator=gen, dtype=torch.float64)
+            flip = a + b > 1
+            a, b = torch.where(flip, 1 - a, a), torch.where(flip, 1 - b, b)
+            w = torch.stack([1 - a - b, a, b], -1)[..., None]       # [k, 3, 1] barycentric
+            p_uv = (w * uv[face]).sum(1).clamp(0, 1)
+            p_n = (w * nrm[face]).sum(1)
+            acc.index_add_(0, texel_of(p_uv, H, W), p_n)
+    length = acc.norm(dim=-1, keepdim=True)
+    covered = length[:, 0] > 1e-12
+    normals = torch.where(covered[:, None], acc / length.clamp_min(1e-300), torch.zeros_like(acc))
+    return normals.float().reshape(H, W, 3), covered.reshape(H, W)
+
+
+def _name_direction(d: Tensor | None, up: Tensor) -> str:
+    """Words for a mean normal ``d`` (unit or None) in the dataset frame with ``up``: above / below / the side."""
+    if d is None:
+        return "all around (no single direction)"
+    axes = ["+x", "−x", "+y", "−y", "+z", "−z"]
+    comp = torch.stack([d, -d], 1).reshape(-1)                 # +x, −x, +y, −y, +z, −z
+    axis = axes[int(comp.argmax())]
+    vec = f"({float(d[0]):.2f}, {float(d[1]):.2f}, {float(d[2]):.2f})"
+    u = float((d * up).sum())
+    where = "above" if u > 0.7 else "below" if u < -0.7 else "the side"
+    return f"{where} ({axis}; mean normal {vec})"
+
+
+def coverage_advice(obs, normals: Tensor | None = None, surface: Tensor | None = None, *, cos: float = WELL_LIT_COS,
+                    highlight_deg: float = HIGHLIGHT_DEG, specular: bool = True, block: int | None = None,
+                    up=(0.0, 0.0, 1.0)) -> dict:
+    """Which directions the photos miss: the surface texels never seen well, never lit well, or never shown a
+    highlight, where their normals point on average, and what to add.
+
+    Per texel of the surface (``surface``; default: the texels some sample reads), three disjoint sets:
+
+    * ``unseen`` — no sample sees it with n·v > ``cos`` (never seen at all, or only grazing): add *views* facing the
+      set's mean normal;
+    * ``unlit`` — seen so, but no (sample, light) pair has n·v > ``cos`` and n·l > ``cos``: add *lights* from there;
+    * ``no_highlight`` (``specular`` only) — well seen and lit, but no pair's half vector comes within
+      ``highlight_deg`` of the normal: no highlight was seen, so f0 and roughness rest on the lobe's tail; add a light
+      near the mirror direction of a view (e.g. beside the camera, for surfaces facing it).
+
+    A texel counts as seen / lit / highlighted when a texel within ``block`` × ``block`` of it is (a square
+    neighbourhood): photos with fewer pixels than the maps have texels no pixel centre falls in even where a view
+    faces them. ``block=None`` takes about the texel spacing of one view's samples, ⌈√(surface texels · views /
+    (2 · samples))⌉ clamped to [1, 15] and made odd (each view sees about half the surface); 1 judges each texel alone.
+
+    Args:
+        obs: :class:`capture.observations.Observations` (with ``n``, the samples' shading normals, when ``normals``
+            is None).
+        normals: ``[H, W, 3]`` texel normals in the dataset frame (:func:`texel_normals`); None = the mean of each
+            observed texel's samples' normals (then texels no sample reads are not part of the surface).
+        surface: ``[H, W]`` bool, the texels on the object (default: where ``normals`` is non-zero, else the texels
+            some sample reads); the texels some sample reads always count.
+        cos: the cosine a view or light must exceed (default :data:`WELL_LIT_COS`, 72.5° from the normal).
+        highlight_deg: the half-vector angle of a highlight (default :data:`HIGHLIGHT_DEG`).
+        specular: also judge highlights (the model has a specular lobe).
+        up: the dataset frame's up direction, to name a direction above / below / at the side (default +z).
+
+    Returns:
+        ``{"texels": surface texels, "block": b, "cos": cos, "highlight_deg": …, "unseen" | "unlit" | "no_highlight":
+        {"texels", "fraction" (of the surface texels), "direction" (unit mean normal as a list, or None when the
+        normals spread so that their mean is shorter than 0.3), "named" (words)}, "advice": [sentences]}``;
+        ``no_highlight`` only with ``specular``. Advice names each set of at least :data:`ADVICE_MIN_FRACTION`.
+    """
+    import torch.nn.functional as F
+
+    H, W = obs.map_size
+    T = H * W
+    if isinstance(cos, bool) or not isinstance(cos, (int, float)) or not -1 < cos < 1:
+        raise MetricsError(f"coverage_advice: cos must be a number in (−1, 1), got {cos!r}")
+    if isinstance(highlight_deg, bool) or not isinstance(highlight_deg, (int, float)) or not 0 < highlight_deg < 90:
+        raise MetricsError(f"coverage_advice: highlight_deg must be a number of degrees in (0, 90), got "
+                           f"{highlight_deg!r}")
+    if block is not None and (isinstance(block, bool) or not isinstance(block, int) or block < 1):
+        raise MetricsError(f"coverage_advice: block must be a positive integer or None, got {block!r}")
+    up_t = torch.as_tensor(up, dtype=torch.float64).reshape(-1)
+    if up_t.numel() != 3 or not bool(torch.isfinite(up_t).all()) or float(up_t.norm()) == 0:
+        raise MetricsError(f"coverage_advice: up must be a non-zero 3-vector, got {up!r}")
+    up_t = up_t / up_t.norm()
+    dev = obs.device
+    read = obs.footprint().reshape(T).to(dev)
+    if normals is None:
+        if obs.n is None:
+            raise MetricsError("coverage_advice: the observations carry no normals (obs.n); pass normals= "
+                               "(capture.metrics.texel_normals of the mesh)")
+        acc = torch.zeros(T, 3, dtype=torch.float64, device=dev).index_add_(0, obs.texel, obs.n.double())
+        nrm = acc / acc.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    else:
+        if not isinstance(normals, Tensor) or tuple(normals.shape) != (H, W, 3):
+            raise MetricsError(f"coverage_advice: normals must be a [{H}, {W}, 3] tensor like the observations' maps, "
+                               f"got {getattr(normals, 'shape', type(normals).__name__)}")
+        nrm = normals.reshape(T, 3).double().to(dev)
+    if surface is None:
+        surf = nrm.norm(dim=-1) > 0.5 if normals is not None else torch.zeros(T, dtype=torch.bool, device=dev)
+    else:
+        if not isinstance(surface, Tensor) or surface.dtype != torch.bool or tuple(surface.shape) != (H, W):
+            raise MetricsError(f"coverage_advice: surface must be an [{H}, {W}] bool tensor, got "
+                               f"{getattr(surface, 'dtype', type(surface).__name__)} "
+                               f"{tuple(getattr(surface, 'shape', ()))}")
+        surf = surface.reshape(T).to(dev)
+    surf = surf | read
+    n_surf = int(surf.sum())
+
+    def per_texel(texels: Tensor) -> Tensor:
+        out = torch.zeros(T, dtype=torch.bool, device=dev)
+        out[texels] = True
+        return out
+
+    nv_s = obs.v is not None and obs.n is not None
+    nv = (obs.n * obs.v).sum(-1) if nv_s else None
+    tex_pair = obs.texel[obs.pair_sample]
+    nv_pair, nl_pair = obs.angles.nv.reshape(-1), obs.angles.nl.reshape(-1)
+    if nv is None:          # no per-sample vectors: the pairs' cosines (samples without a pair are not judged)
+        seen = per_texel(tex_pair[nv_pair > cos])
+    else:
+        seen = per_texel(obs.texel[nv > cos])
+    lit = per_texel(tex_pair[(nv_pair > cos) & (nl_pair > cos)])
+    hl = per_texel(tex_pair[obs.angles.nh.reshape(-1) >= math.cos(math.radians(highlight_deg))])
+    if block is None:
+        views = max(int(obs.n_views), 1)
+        b = math.ceil(math.sqrt(max(n_surf, 1) * views / (2 * max(obs.n_samples, 1))))
+        block = min(max(b, 1), 15)
+        block += 1 - block % 2
+    if block > 1:
+        def grow(m: Tensor) -> Tensor:
+            x = m.reshape(1, 1, H, W).float()
+            return F.max_pool2d(x, block, 1, block // 2)[..., :H, :W].reshape(T) > 0.5
+        seen, lit, hl = grow(seen), grow(lit), grow(hl)
+
+    sets = {"unseen": surf & ~seen, "unlit": surf & seen & ~lit}
+    if specular:
+        sets["no_highlight"] = surf & seen & lit & ~hl
+    out = {"texels": n_surf, "block": block, "cos": float(cos), "highlight_deg": float(highlight_deg)}
+    advice = []
+    for key, m in sets.items():
+        k = int(m.sum())
+        frac = k / n_surf if n_surf else 0.0
+        d = None
+        if k:
+            mean = nrm[m].sum(0) / k
+            if float(mean.norm()) >= 0.3:
+                d = mean / mean.norm()
+        named = _name_direction(d.cpu() if d is not None else None, up_t)
+        out[key] = {"texels": k, "fraction": frac, "direction": d.tolist() if d is not None else None,
+                    "named": named}
+        if frac >= ADVICE_MIN_FRACTION:
+            pct = f"{frac:.0%}"
+            if key == "unseen":
+                advice.append(f"add views from {named}: {pct} of the surface texels are never seen at n·v > {cos:g}")
+            elif key == "unlit":
+                advice.append(f"add light directions from {named}: {pct} of the surface texels are seen but never lit "
+                              f"at n·l > {cos:g} in a view that sees them at n·v > {cos:g}")
+            else:
+                advice.append(f"add a light near the mirror direction of a view for texels facing {named}: {pct} of "
+                              f"the surface texels are seen and lit but never show a highlight (no half vector within "
+                              f"{highlight_deg:g}° of the normal), so their f0 and roughness rest on the lobe's tail")
+    out["advice"] = advice
+    return out
