@@ -14,8 +14,9 @@
    :data:`AUTO_TRIAL_TEXTURE`² are judged on a coarser copy of the problem (:func:`_trial_observations`).
    The chosen model is then refit on all views at full size.
 5. ``solve``: :func:`capture.solvers.solve_fast` (default) or :func:`capture.solvers.solve_adam`.
-6. ``write``: maps (EXR linear + PNG), confidence/coverage maps, a grid of re-rendered views
-   beside the photos with error images, ``report.json``, ``summary.txt``, ``mesh.obj`` — into a
+6. ``write``: maps (EXR linear + PNG), confidence maps (EXR + a PNG preview with a colour bar), coverage, the
+   labelled views pages (photo | re-render | relative error, :func:`capture.plots.plot_views`), ``report.json``,
+   ``summary.txt`` (with advice on the directions the photos miss), ``mesh.obj`` — into a
    temporary folder next to ``out_dir`` that is renamed into place at the end, so a reader never
    sees a half-written output and a failure leaves nothing behind.
 
@@ -393,18 +394,6 @@ def unresolved_roughness(obs: Observations, roughness: Tensor, mask: Tensor, nei
     return float(unresolved[m].float().mean()), float(r[m].median())
 
 
-def _grid_image(rows: list[list[Tensor]]) -> Tensor:
-    """Tile images ``[H, W, 3]`` (rows of equal count) into one, 2-px black gutters."""
-    H = max(im.shape[0] for r in rows for im in r)
-    W = max(im.shape[1] for r in rows for im in r)
-    n = max(len(r) for r in rows)
-    out = torch.zeros(len(rows) * (H + 2), n * (W + 2), 3)
-    for i, r in enumerate(rows):
-        for j, im in enumerate(r):
-            out[i * (H + 2):i * (H + 2) + im.shape[0], j * (W + 2):j * (W + 2) + im.shape[1]] = im.float()
-    return out
-
-
 def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool = False, solver: str = "fast",
                 loss: str = "l2", texture_size: int | None = None, dtype: torch.dtype = torch.float32,
                 progress: bool = True, auto_gain: float = 0.05, auto_chi2: float = AUTO_EXPLAINED_CHI2,
@@ -422,13 +411,15 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         loss: "l2", "huber" or "l1".
         texture_size: size T of the recovered T×T maps (default: the ground truth's, else 256).
         dtype: dtype of the model evaluations (float32 default; float64 for precision studies).
-        progress: show a tqdm bar with the live loss.
+        progress: show one bar over the whole job with its stage, the live loss and an ETA
+            (:mod:`capture.progress`); False shows nothing.
         auto_gain: ``model="auto"`` stops when the held-out mean absolute error drops by less than this
             fraction.
         auto_chi2: ``model="auto"`` also stops once a candidate explains its training photos within their noise: its
             fit's χ² per residual (:func:`_misfit`) at most this (default :data:`AUTO_EXPLAINED_CHI2`); 0 turns
             that off. A model that leaves nothing but noise leaves a richer one nothing to explain.
-        max_grid_views: views shown in the re-render grid.
+        max_grid_views: views per page of the labelled views figure (``views.png``, ``views-2.png``, …; every
+            view is shown, the held-out ones first).
         sampling: how a sample reads the maps: "nearest" or "bilinear"; None = "bilinear" (a texture-mapped
             surface; the ground truth, when a dataset has one, is never read to decide how to fit). Bilinear runs
             the per-texel solve and then the joint refinement (:func:`capture.solvers.refine_joint`).
@@ -520,6 +511,14 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                                       f"their parameters are {sorted(params)}")
     for c in candidates:
         _model(c, known)  # unknown names and bad known values fail before any work
+    from .progress import RECONSTRUCT_STAGES, Progress
+
+    # one bar over the whole job, stages weighted by their expected cost; the stages this run skips are left out
+    fits_footprints = footprint and solver == "fast" and sampling in (None, "bilinear")
+    prog = Progress({k: w for k, w in RECONSTRUCT_STAGES.items()
+                     if (k != "select" or len(candidates) > 1) and (k != "footprints" or fits_footprints)
+                     and (k not in ("sharing", "joint") or solver == "fast")}, enabled=progress)
+    prog.start("load")
     ds = load_dataset(dataset_path)
     held_views = _check_holdout(holdout, len(ds.views))
     fit_views = [i for i in range(len(ds.views)) if i not in held_views]
@@ -527,12 +526,15 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     # -- geometry once --------------------------------------------------------------------------
     t = time.perf_counter()
+    prog.start("gbuffer", f"{len(ds.views)} views")
     preps = []
     for v in ds.views:
         g = render_gbuffer(ds.mesh, v.camera, 1)
         preps.append(prepare(g, ds.mesh, v.lights, shadows=True))
+        prog.tick()
     times["gbuffer"] = time.perf_counter() - t
     t = time.perf_counter()
+    prog.start("observe")
     photos = ds.load_images(dtype=dtype)
     if texture_size is None:
         texture_size = int(next(iter(ds.gt.maps.values())).shape[0]) if ds.gt is not None else 256
@@ -567,6 +569,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                                       [p.gbuffer for p in preps], [p.radiance for p in photos], (size, size),
                                       lights=all_lights, clipped=[p.unusable for p in photos], dtype=dtype)
 
+        prog.start("footprints")
         fp_all = footprints(texture_size)
         fp = fp_all.select_views(fit_views) if held_views else fp_all
         held_fp = fp_all.select_views(held_views) if held_views else None
@@ -591,20 +594,16 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             raise ReconstructionError(f"the views left to fit ({fit_views}) have no valid sample; hold out fewer "
                                       f"views (holdout={held_views})")
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(desc="solve", unit="it", leave=False)
-
     def cb(stage, it, cost):
-        if bar is not None:
-            bar.set_postfix_str(f"{stage} loss {cost:.3e}")
-            bar.update(1)
+        # the solver's steps: its per-texel LM stages (the schedule's names), "share", "joint", "adam"
+        if prog.stage != "select":
+            prog.start({"share": "sharing", "joint": "joint"}.get(stage, "solve"))
+        prog.tick(f"{stage} loss {cost:.3e}")
 
     # -- model selection --------------------------------------------------------------------------
     t = time.perf_counter()
     if len(candidates) > 1:
+        prog.start("select", f"{len(candidates)} candidates")
         trial = _trial_observations(observe, obs, texture_size, fit_views)
         held = fit_views[3::4] if len(fit_views) >= 4 else []
         train_obs = trial.select_views([i for i in fit_views if i not in held]) if held else trial
@@ -631,6 +630,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                 fit, m, notes = _fit(m, train_obs, solver, loss, {**options, "footprints": train_fp}
                                      if train_fp is not None else options, cb, scalars)
             except SolverError as exc:
+                prog.abort()
                 raise ReconstructionError(f"auto, trial fit of {name}: {exc}") from None
             if train_fp is not None:
                 with torch.no_grad():
@@ -673,14 +673,13 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     # -- solve ----------------------------------------------------------------------------------
     t = time.perf_counter()
+    prog.start("solve", report.model)
     try:
         fit, mdl, scalar_notes = _fit(mdl, obs, solver, loss, {**options, "footprints": fp} if fp is not None
                                       else options, cb, scalars)
     except SolverError as exc:
+        prog.abort()
         raise ReconstructionError(str(exc)) from None
-    finally:
-        if bar is not None:
-            bar.close()
     for n, note in scalar_notes.items():
         if not note["measured"]:
             report.warnings.append(f"parameter '{n}' is fitted as one value for the object but is "
@@ -752,6 +751,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     # -- metrics --------------------------------------------------------------------------------
     t = time.perf_counter()
+    prog.start("metrics")
     from .metrics import determined_at_truth, image_metrics, map_errors, observability_errors
 
     gt_size = tuple(next(iter(ds.gt.maps.values())).shape[:2]) if ds.gt is not None else None
@@ -827,7 +827,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     # -- write ----------------------------------------------------------------------------------
     t = time.perf_counter()
     _write_outputs(out_dir, ds, fit, obs, renders, photos, report, times, force, max_grid_views, spt, vpt,
-                   known_maps)
+                   known_maps, prog)
     return report
 
 #: reconstruct's own parameters, passed on unchanged when it re-enters itself with a thread count set
@@ -835,11 +835,26 @@ _RECONSTRUCT_ARGS = tuple(p for p in inspect.signature(reconstruct).parameters i
 
 
 def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, report: Report, times, force,
-                   max_grid_views, spt: Tensor, vpt: Tensor, known_maps: Mapping[str, Tensor]) -> None:
+                   max_grid_views, spt: Tensor, vpt: Tensor, known_maps: Mapping[str, Tensor], prog=None) -> None:
+    """Write everything into ``out_dir`` atomically (module docstring, step 6): maps, confidence EXRs with their
+    previews, coverage, the labelled views pages (``max_grid_views`` views a page), the mesh, ``report.json`` and
+    ``summary.txt`` — after adding to the report which directions the photos miss (``coverage.directions``,
+    :func:`capture.metrics.coverage_advice`). ``prog``: the job's :class:`capture.progress.Progress` (closed at the
+    end)."""
+    from capture.metrics import coverage_advice, texel_normals
     from capture.outputs import atomic_folder, json_text, na_floats, na_text
+    from capture.plots import ViewRow, plot_confidence, plot_views
     from renderer.imageio import write_exr, write_png
 
+    from .progress import Progress
+
+    prog = prog if prog is not None else Progress({"outputs": 1.0}, enabled=False)
+    prog.start("outputs")
     t = time.perf_counter()
+    # which directions the photos miss, from the observations' geometry and the mesh's texel normals
+    normals, covered = texel_normals(ds.mesh, tuple(obs.map_size))
+    report.coverage["directions"] = coverage_advice(obs, normals, covered,
+                                                    specular=any(k in fit.raw for k in ("f0", "roughness")))
     # atomic: a temporary folder next to out_dir, moved into place at the end (the umask's permissions, the old
     # output removed); any failure or interrupt removes it; an OSError is one line naming out_dir
     with atomic_folder(out_dir, force=force, error=ReconstructionError, force_flag="force=True (--force)") as tmp:
@@ -853,19 +868,16 @@ def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, repo
             if k in known_maps:
                 continue
             write_exr(tmp / f"confidence_{k}.exr", fit.confidence[k].float(), allow_nonfinite=True)
+            plot_confidence(tmp / f"confidence_{k}.png", fit.confidence[k], fit.unobservable[k].cpu(), k)
             write_png(tmp / f"unobservable_{k}.png", fit.unobservable[k].float()[..., None], transfer="linear")
+            prog.tick(k)
         write_exr(tmp / "coverage.exr", torch.stack([spt.float(), vpt.float(), fit.observed.float()], -1))
-        # re-render grid: photo | render | |error| ×4, for up to max_grid_views views
-        # NaN and ±inf pixels (dropped by the fit) are shown black
-        shown = lambda x: x.float().nan_to_num(nan=0.0, posinf=0.0, neginf=0.0)  # noqa: E731
-        rows = []
-        peak = max(float(shown(p.radiance).max()) for p in photos)
-        peak = peak if peak > 0 else 1.0
-        for i, img, mask in renders[:max_grid_views]:
-            ph, im = shown(photos[i].radiance), shown(img)
-            err = torch.where(mask[..., None], (im - ph).abs() * 4, torch.zeros_like(ph))
-            rows.append([ph / peak, im / peak, err / peak])
-        write_png(tmp / "views.png", shown(_grid_image(rows)).clamp(0, 1), transfer="srgb")
+        # every view, labelled: photo | re-render | |relative error| (capture.plots.plot_views), max_grid_views a page
+        psnr = {v["view"]: v.get("psnr") for v in report.views}
+        held = {v["view"] for v in report.views if v.get("heldout")}
+        plot_views(tmp, [ViewRow(i, photos[i].radiance, img, mask, psnr.get(i), i in held) for i, img, mask in renders],
+                   per_page=max(int(max_grid_views), 1))
+        prog.tick("views")
         mesh_src = Path(ds.root) / ds.mesh_file
         if mesh_src.suffix.lower() == ".obj":
             shutil.copyfile(mesh_src, tmp / "mesh.obj")
@@ -880,6 +892,7 @@ def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, repo
         (tmp / "report.json").write_text(json_text(report.to_dict()))  # strict JSON: non-finite numbers are null
         printed = Report(**na_floats(report.to_dict()))  # non-finite numbers print as n/a, not nan
         (tmp / "summary.txt").write_text(na_text(_summary(printed)))
+    prog.close()
 
 
 def _check_holdout(holdout, n_views: int) -> list[int]:
@@ -930,6 +943,62 @@ def _time_saved(obs: Observations, lights_per_view: list[int], solve_s: float, f
            "pairs_upper_s": skipped_pairs * solve_s / max(fitted_pairs, 1)}
     if not_tried and selection:
         out["models_not_tried_lower_s"] = len(not_tried) * float(selection[-1]["seconds"])
+    return out
+
+
+def _cell(row: dict | None, what: str) -> str:
+    """``RMSE / max`` of an error row, or words where it has no texel."""
+    if not row or not row.get("texels"):
+        return f"none {what}"
+    return f"{row['rmse']:.5f} / {row['max']:.5f}"
+
+
+def _error_table(r: Report) -> list[str]:
+    """The summary's errors against the ground truth: a table with a header row naming each column, a key under
+    it, and a line in words for each map with no observable texel."""
+    truth = r.errors.get("maps_determined_at_truth", {})
+    frac = r.coverage.get("observable_fraction", {})
+    head = ["map", "observed texels", "observable texels", "observable", "flagged share"]
+    if truth:
+        head.append("determined at truth (fraction)")
+    rows, unmeasured = [], []
+    for k, v in r.errors["maps"].items():
+        o = r.errors.get("maps_observable", {}).get(k, {})
+        ob = r.errors.get("observability", {}).get(k, {})
+        f = frac.get(k)
+        row = [k, _cell(v, "observed"), _cell(o, "observable"), "n/a" if f is None else f"{f:.1%}",
+               "n/a" if "flagged_share" not in ob else f"{ob['flagged_share']:.1%}"]
+        if truth:
+            row.append(f"{_cell(truth[k], 'determined')} ({ob.get('determined_fraction', 0.0):.1%})" if k in truth
+                       else "n/a")
+        rows.append(row)
+        if v.get("texels") and not o.get("texels"):
+            unmeasured.append(f"{k}: not measured — no texel is observable (its map is filled, not measured)")
+    widths = [max(len(x[c]) for x in [head, *rows]) for c in range(len(head))]
+    fmt = lambda row: "  " + "  ".join(x.ljust(w) for x, w in zip(row, widths, strict=True)).rstrip()  # noqa: E731
+    key = ("  columns: observed texels / observable texels = on all observed texels / on texels where the map is "
+           "observable; observable = their fraction; flagged share = share of the squared error in texels flagged "
+           "unobservable (near 100 %: the error is where the report warned)")
+    if truth:
+        key += "; determined at truth = on texels the photos determine at the true maps (their fraction)"
+    return (["errors vs ground truth, RMSE / max |error| (canonical units):", fmt(head),
+             fmt(["-" * w for w in widths]), *map(fmt, rows), key] + [f"  {u}" for u in unmeasured])
+
+
+def _direction_lines(d: dict | None) -> list[str]:
+    """The summary's coverage advice (:func:`capture.metrics.coverage_advice` in ``report.coverage``)."""
+    if not d or not d.get("texels"):
+        return []
+    c, hd = d["cos"], d["highlight_deg"]
+    parts = [f"{d['unseen']['fraction']:.0%} never seen at n·v > {c:g}",
+             f"{d['unlit']['fraction']:.0%} seen but never lit at n·l > {c:g}"]
+    if "no_highlight" in d:
+        parts.append(f"{d['no_highlight']['fraction']:.0%} seen and lit but never with a half vector within {hd:g}° "
+                     f"of the normal (no highlight)")
+    out = [f"directions the photos miss, of {d['texels']} surface texels: " + "; ".join(parts)]
+    out.extend(f"advice: {a}" for a in d.get("advice", []))
+    if not d.get("advice"):
+        out.append("advice: none — every direction judged is covered for at least 99 % of the surface texels")
     return out
 
 
@@ -994,21 +1063,7 @@ def _summary(r: Report) -> str:
             lines.append(f"auto's trial fits ran on {tr['texture_size']}² maps with {tr['sample_fraction']:.0%} of the "
                          f"samples ({tr['samples']}); the chosen model was then fitted at full size")
     if "maps" in r.errors:
-        truth = r.errors.get("maps_determined_at_truth", {})
-        lines.append("errors vs ground truth, RMSE / max: on observed texels | on texels where the map is observable "
-                     "(fraction observable) | share of the squared error in texels flagged unobservable"
-                     + (" | on texels the photos determine at the true maps (fraction)" if truth else ""))
-        frac = r.coverage.get("observable_fraction", {})
-        nan = float("nan")
-        for k, v in r.errors["maps"].items():
-            o = r.errors.get("maps_observable", {}).get(k, {})
-            ob = r.errors.get("observability", {}).get(k, {})
-            line = (f"  {k:14s} {v['rmse']:.5f} / {v['max']:.5f} | {o.get('rmse', nan):.5f} / {o.get('max', nan):.5f} "
-                    f"({frac.get(k, nan):.1%}) | {ob.get('flagged_share', nan):.1%}")
-            if k in truth:
-                line += (f" | {truth[k]['rmse']:.5f} / {truth[k]['max']:.5f} "
-                         f"({ob.get('determined_fraction', nan):.1%})")
-            lines.append(line)
+        lines.extend(_error_table(r))
         sets = r.errors.get("maps_by_texel_set", {})
         if sets:
             lines.append("RMSE by texel set: " + "; ".join(
@@ -1022,5 +1077,6 @@ def _summary(r: Report) -> str:
             ps = [v["psnr"] for v in vs]
             lines.append(f"{label}: PSNR {min(ps):.1f}–{max(ps):.1f} dB, SSIM mean "
                          f"{sum(v['ssim'] for v in vs) / len(vs):.4f}")
+    lines.extend(_direction_lines(r.coverage.get("directions")))
     lines.extend(f"WARNING: {w}" for w in r.warnings)
     return "\n".join(lines) + "\n"
