@@ -60,3 +60,89 @@ def test_determined_at_truth_by_hand():
         determined_at_truth(materials.get("ggx-lambert"), obs, gt)
     with pytest.raises(MetricsError, match="bool mask"):
         observability_errors(gt, gt, torch.ones(4, 4, dtype=torch.bool), {}, determined={"albedo": det.float()})
+
+
+def _four_texel_observations():
+    """A 2 × 2 map, one sample per texel and one light each, built by hand (normals +z except texel 3's, −z):
+    texel 0 seen and lit at the mirror configuration (h = n); texel 1 seen, lit at n·l = 0.196 only; texel 2 seen
+    and lit, half vector 28.6° off the normal (n·h = 0.878); texel 3 seen only at grazing n·v = 0.0995."""
+    from capture.observations import DROP_REASONS, Observations
+    from materials.geometry import Angles
+
+    unit = lambda *x: torch.nn.functional.normalize(torch.tensor(x, dtype=torch.float64), dim=-1)  # noqa: E731
+    up, down = unit(0, 0, 1), unit(0, 0, -1)
+    v0 = unit(0.3, 0, 1)
+    n = torch.stack([up, up, up, down])
+    v = torch.stack([v0, v0, v0, unit(1, 0, -0.1)])
+    l = torch.stack([unit(-0.3, 0, 1), unit(1, 0, 0.2), unit(0, 0.8, 0.6), down])
+    ang = Angles.from_vectors(n, l, v)
+    angles = Angles(*(getattr(ang, f)[:, None] for f in ("nl", "nv", "nh", "lh", "lv")))
+    return Observations(texel=torch.arange(4), map_size=(2, 2), radiance=torch.ones(4, 3, dtype=torch.float64),
+                        weight=torch.ones(4, dtype=torch.float64), pair_sample=torch.arange(4),
+                        pair_light=torch.zeros(4, dtype=torch.long), angles=angles,
+                        irradiance=torch.ones(4, 3, dtype=torch.float64), view=torch.zeros(4, dtype=torch.long),
+                        pixel=torch.arange(4), n=n, v=v, drops=dict.fromkeys(DROP_REASONS, 0))
+
+
+def test_coverage_advice_on_a_constructed_observation_set():
+    from capture.metrics import coverage_advice
+
+    obs = _four_texel_observations()
+    normals = obs.n.reshape(2, 2, 3).float()
+    for a in (coverage_advice(obs, normals, torch.ones(2, 2, dtype=torch.bool)), coverage_advice(obs)):
+        # one texel in each set: unseen (texel 3, facing −z), unlit (texel 1), no highlight (texel 2), of 4
+        assert a["texels"] == 4 and a["block"] == 1
+        for key in ("unseen", "unlit", "no_highlight"):
+            assert a[key]["texels"] == 1 and a[key]["fraction"] == 0.25, (key, a[key])
+        assert a["unseen"]["direction"] == pytest.approx([0.0, 0.0, -1.0])
+        assert a["unlit"]["direction"] == pytest.approx([0.0, 0.0, 1.0])
+        assert a["unseen"]["named"].startswith("below (−z") and a["unlit"]["named"].startswith("above (+z")
+        assert len(a["advice"]) == 3
+        assert a["advice"][0].startswith("add views from below (−z") and "25% of the surface texels are never seen " \
+            "at n·v > 0.3" in a["advice"][0]
+    # a wider highlight cone takes texel 2 in (n·h = 0.878 is 28.6°); without a specular lobe nothing is judged
+    assert coverage_advice(obs, highlight_deg=30.0)["no_highlight"]["texels"] == 0
+    assert "no_highlight" not in coverage_advice(obs, specular=False)
+    with pytest.raises(MetricsError, match="cos must be"):
+        coverage_advice(obs, cos=1.5)
+    with pytest.raises(MetricsError, match=r"normals must be a \[2, 2, 3\]"):
+        coverage_advice(obs, torch.zeros(4, 3))
+    with pytest.raises(MetricsError, match="surface must be"):
+        coverage_advice(obs, normals, torch.ones(2, 2))
+    with pytest.raises(MetricsError, match="highlight_deg"):
+        coverage_advice(obs, highlight_deg=0)
+
+
+def test_coverage_advice_counts_texels_no_sample_reads_and_fills_blocks():
+    from dataclasses import replace
+
+    from capture.metrics import coverage_advice
+
+    obs = _four_texel_observations()
+    # the same four samples on a 2 × 4 map whose right half is surface no sample reads, facing −y
+    wide = replace(obs, texel=torch.tensor([0, 1, 4, 5]), map_size=(2, 4))
+    normals = torch.zeros(2, 4, 3)
+    normals[..., 2] = 1.0
+    normals[1, 1] = torch.tensor([0.0, 0.0, -1.0])
+    normals[:, 2:] = torch.tensor([0.0, -1.0, 0.0])
+    a = coverage_advice(wide, normals, block=1)
+    assert a["texels"] == 8 and a["unseen"]["texels"] == 5 and a["unseen"]["fraction"] == 5 / 8
+    mean = torch.tensor([0.0, -4.0, -1.0]) / 5
+    assert a["unseen"]["direction"] == pytest.approx((mean / mean.norm()).tolist(), abs=1e-6)
+    assert a["unseen"]["named"].startswith("the side (−y")
+    # a 3 × 3 block: a texel next to a well-seen one counts as seen (only texels 3 and 7 are two columns away)
+    assert coverage_advice(wide, normals, block=3)["unseen"]["texels"] == 2
+
+
+def test_texel_normals_of_a_plane():
+    from capture.metrics import texel_normals
+    from renderer.mesh import plane
+
+    normals, covered = texel_normals(plane(subdivisions=2), (16, 16))
+    # 8 random points per texel: all 256 texels covered (e^-8 each), every normal +z
+    assert covered.all()
+    assert torch.allclose(normals, torch.tensor([0.0, 0.0, 1.0]).expand(16, 16, 3))
+    with pytest.raises(MetricsError, match="map_size"):
+        texel_normals(plane(), (16, 0))
+    with pytest.raises(MetricsError, match="Mesh"):
+        texel_normals(object(), (16, 16))
