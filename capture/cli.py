@@ -4,6 +4,7 @@
     shadecap synth --out DIR [...]                     write a synthetic dataset (scripts/make_synthetic.py)
     shadecap reconstruct DATASET --out DIR [--model NAME|auto] [...]
     shadecap export-atlas RECON_DIR... --out DIR [...]
+    shadecap import {colmap,transforms,opencv} SOURCE --mesh M --out DIR [--images DIR] [--flash X,Y,Z] [...]
     shadecap models                                    list every reflectance model
 
 Errors a user can fix (bad dataset, unknown model, existing output folder, an output that would
@@ -229,6 +230,66 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _floats3(text: str, flag: str, grey: bool = False) -> list[float]:
+    """``"x,y,z"`` → 3 floats (``grey``: one number means three equal ones)."""
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        vals = []
+    if grey and len(vals) == 1:
+        vals *= 3
+    if len(vals) != 3:
+        raise ValueError(f"{flag}: expected {'one number or ' if grey else ''}3 numbers separated by commas, got "
+                         f"{text!r}")
+    return vals
+
+
+def _cmd_import(args) -> int:
+    from capture.importers import Flash, ImportOptions, import_colmap, import_opencv_yaml, import_transforms_json
+
+    flash = None
+    if args.flash is not None:
+        flash = Flash(_floats3(args.flash, "--flash"), _floats3(args.flash_intensity, "--flash-intensity", grey=True))
+    lights = []
+    if args.lights:
+        lights = json.loads(Path(args.lights).read_text(encoding="utf-8"))
+        if not isinstance(lights, list):
+            raise ValueError(f"{args.lights}: --lights must hold a JSON list of light objects")
+    masks = args.masks if args.masks in (None, "alpha") else Path(args.masks)
+    opts = ImportOptions(mesh=args.mesh, images=args.images, masks=masks, flash=flash, lights=lights,
+                         undistort=not args.no_undistort, encoding=args.encoding, exposure=args.exposure,
+                         unwrap=args.unwrap)
+    fn = {"colmap": import_colmap, "transforms": import_transforms_json, "opencv": import_opencv_yaml}[args.format]
+    res = fn(args.source, args.out, opts, overwrite=args.overwrite)
+    print(res.summary())
+    for w in res.warnings:
+        print(f"warning: {w}")
+    return 0
+
+
+def _add_import_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("format", choices=("colmap", "transforms", "opencv"),
+                   help="colmap: a sparse model folder (cameras/images .txt or .bin); transforms: a NeRF/instant-ngp/"
+                        "nerfstudio transforms.json; opencv: a cv2.FileStorage calibration YAML (docs/importing.md)")
+    p.add_argument("source", help="the model folder or the camera file")
+    p.add_argument("--mesh", required=True, help="the object's mesh (OBJ/PLY/GLB) in the cameras' world frame")
+    p.add_argument("--out", required=True, help="dataset folder to create (must not exist unless --overwrite)")
+    p.add_argument("--images", help="folder the photo names are relative to (required for colmap; default: the "
+                   "camera file's folder)")
+    p.add_argument("--masks", help="folder of masks named like the photos (nonzero = object), or 'alpha' (RGBA)")
+    p.add_argument("--flash", metavar="X,Y,Z", help="a light fixed to the camera, at X,Y,Z in the camera frame "
+                   "(OpenCV: x right, y down, z forward; world units); 0,0,0 = at the lens")
+    p.add_argument("--flash-intensity", default="1", metavar="I or R,G,B", help="the flash's radiant intensity")
+    p.add_argument("--lights", metavar="FILE", help="JSON list of world-space lights for every photo")
+    p.add_argument("--no-undistort", action="store_true",
+                   help="take the photos as already undistorted (distortion coefficients ignored)")
+    p.add_argument("--encoding", choices=("auto", "srgb", "linear"), default="auto",
+                   help="auto: 8-bit and 16-bit PNG/JPEG sRGB, EXR and 16-bit TIFF linear")
+    p.add_argument("--exposure", type=float, default=1.0, help="pixel value = exposure · radiance")
+    p.add_argument("--unwrap", action="store_true", help="give the mesh a UV atlas with xatlas (pip install xatlas)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="shadecap", description="Differentiable material capture (see README.md).")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -250,6 +311,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("recon_dirs", nargs="+", help="reconstruction output folders")
     _add_export_args(p)
     p.set_defaults(func=_cmd_export)
+    p = sub.add_parser("import", help="import a real capture (COLMAP, transforms.json, OpenCV YAML) as a dataset")
+    _add_import_args(p)
+    p.set_defaults(func=_cmd_import)
     p = sub.add_parser("models", help="list every reflectance model with its parameters")
     p.set_defaults(func=_cmd_models)
     return ap
