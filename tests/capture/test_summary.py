@@ -1,0 +1,44 @@
+"""summary.txt by hand: the error table, maps without an observable texel named in words, the coverage advice."""
+
+import math
+
+from capture.outputs import na_floats, na_text
+from capture.reconstruct import Report, _summary
+
+
+def _report():
+    r = Report(model="ggx-lambert", solver="fast", out_dir="o")
+    row = lambda rmse, mx, n: {"rmse": rmse, "max": mx, "texels": n}  # noqa: E731
+    r.errors = {"maps": {"albedo": row(0.01, 0.2, 100), "roughness": row(0.09, 0.3, 100)},
+                "maps_observable": {"albedo": row(0.002, 0.03, 50), "roughness": row(math.nan, math.nan, 0)},
+                "observability": {"albedo": {"flagged_share": 0.98}, "roughness": {"flagged_share": 1.0}}}
+    r.coverage = {"observable_fraction": {"albedo": 0.5, "roughness": 0.0},
+                  "directions": {"texels": 1000, "cos": 0.3, "highlight_deg": 10.0, "block": 1,
+                                 "unseen": {"fraction": 0.23}, "unlit": {"fraction": 0.0},
+                                 "no_highlight": {"fraction": 0.4},
+                                 "advice": ["add views from below (−z; mean normal (0.00, 0.00, -1.00)): 23% of the "
+                                            "surface texels are never seen at n·v > 0.3"]}}
+    r.views = [{"view": 0, "psnr": 40.0, "ssim": 0.99}]
+    return r
+
+
+def test_summary_error_table_words_and_advice():
+    text = na_text(_summary(Report(**na_floats(_report().to_dict()))))
+    lines = text.splitlines()
+    head = next(i for i, x in enumerate(lines) if x.startswith("errors vs ground truth"))
+    # a header row naming each column, a rule, one row per map with the columns lined up under their names
+    assert lines[head + 1].split() == ["map", "observed", "texels", "observable", "texels", "observable", "flagged",
+                                       "share"]
+    assert set(lines[head + 2].strip()) <= {"-", " "}
+    albedo, rough = lines[head + 3], lines[head + 4]
+    assert albedo.split()[:4] == ["albedo", "0.01000", "/", "0.20000"] and "50.0%" in albedo and "98.0%" in albedo
+    assert albedo.index("0.00200") == lines[head + 1].index("observable texels")
+    assert "none observable" in rough
+    assert "  roughness: not measured — no texel is observable" in text
+    assert "nan" not in text
+    assert "true maps" not in text                      # no column of texels determined at the truth here
+    assert "directions the photos miss, of 1000 surface texels: 23% never seen at n·v > 0.3" in text
+    assert "advice: add views from below (−z" in text
+    r = _report()
+    r.coverage["directions"]["advice"] = []
+    assert "advice: none" in _summary(r)
