@@ -63,6 +63,7 @@ from .dataset import (
     DatasetError,
     DatasetWarning,
     _dumps,
+    light_to_world,
     load_dataset,
     read_raster,
 )
@@ -156,7 +157,8 @@ class ImportOptions:
             like the photos (``<name>.png``, ``<stem>.png`` or COLMAP's ``<name>.png`` with the photo's suffix
             kept), or ``"alpha"``: the photos' alpha channel (RGBA PNG) is the mask.
         flash: a light fixed to the camera (:class:`Flash`), or a sequence of them; resolved per photo.
-        lights: world-space lights for every photo (``renderer.lights.light_to_dict`` dicts, e.g. studio lamps).
+        lights: lights for every photo as ``scene.json`` light entries (``renderer.lights.light_to_dict`` dicts,
+            e.g. studio lamps in world space, or ``"frame": "camera"`` entries that move with the camera).
         undistort: undistort photos whose camera has lens distortion (default). False: the photos are taken as
             already undistorted and the coefficients are ignored (with a warning).
         encoding: "auto" (8-bit PNG/JPEG and 16-bit PNG → "srgb"; EXR, float and 16-bit TIFF → "linear"),
@@ -210,14 +212,13 @@ class ImportOptions:
         if isinstance(self.lights, Mapping) or isinstance(self.lights, (str, bytes)):
             raise CaptureImportError("ImportOptions.lights must be a list of light dicts, e.g. [{'type': 'point', "
                                "'position': [0, 0, 5], 'intensity': 10}]")
-        parsed = []
+        probe = Camera(torch.eye(3, dtype=torch.float64), torch.eye(3), torch.zeros(3), 1, 1)
         for j, d in enumerate(self.lights):
-            try:
-                parsed.append(light_from_dict(dict(d)) if isinstance(d, Mapping) else light_from_dict(d))
+            try:  # checked now; resolved per photo (a "frame": "camera" light moves with the camera)
+                light_from_dict(light_to_world(dict(d) if isinstance(d, Mapping) else d, probe))
             except LightError as exc:
                 raise CaptureImportError(f"ImportOptions.lights[{j}]: {exc}") from None
-        self.lights = list(self.lights)
-        self._world_lights = parsed
+        self.lights = [dict(d) if isinstance(d, Mapping) else d for d in self.lights]
         if not self.flash and not self.lights:
             raise CaptureImportError("no lights: give a flash fixed to the camera (ImportOptions.flash / --flash X,Y,Z "
                                "--flash-intensity I) or world-space lights (ImportOptions.lights / --lights FILE)")
@@ -234,8 +235,9 @@ class ImportOptions:
                                      f"{self.saturation!r}")
 
     def world_lights(self, camera: Camera) -> list:
-        """The lights of a photo taken by ``camera``: the flashes resolved to world space, then the world lights."""
-        return [f.to_world(camera) for f in self.flash] + list(self._world_lights)
+        """The lights of a photo taken by ``camera``: the flashes, then :attr:`lights`, in world space."""
+        return [f.to_world(camera) for f in self.flash] + [light_from_dict(light_to_world(d, camera))
+                                                           for d in self.lights]
 
 
 @dataclass

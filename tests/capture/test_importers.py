@@ -466,3 +466,17 @@ def test_end_to_end_colmap_flash_jpeg_masks_reconstruct(scene, tmp_path):
     assert observed.float().mean() > 0.5 and observable.sum() >= 20
     err = (albedo - gt)[observable].abs()
     assert err.mean() < 0.03 and err.max() < 0.15, (err.mean(), err.max())  # measured 0.013, 0.11
+
+
+def test_lights_option_in_the_camera_frame_equals_the_flash(scene, tmp_path):
+    names = _write_photos(scene, tmp_path / "images", "png")
+    write_colmap_text(tmp_path / "m", _cams(scene), names)
+    light = {"type": "point", "frame": "camera", "position": list(FLASH), "intensity": scene["intensity"][0]}
+    import_colmap(tmp_path / "m", tmp_path / "ds", ImportOptions(mesh=scene["mesh"], images=tmp_path / "images",
+                                                                    lights=[light]))
+    ds = load_dataset(tmp_path / "ds")
+    for view, cam in zip(ds.views, _cams(scene), strict=True):
+        want = cam.center + cam.R.T @ torch.tensor(FLASH, dtype=torch.float64)
+        assert torch.allclose(view.lights[0].position.double().reshape(3), want, atol=1e-5)
+    with pytest.raises(CaptureImportError, match=r"lights\[0\].*sh.*camera frame"):
+        ImportOptions(mesh=scene["mesh"], lights=[{"type": "sh", "frame": "camera", "coeffs": [[0.0] * 3] * 9}])
