@@ -177,20 +177,56 @@ def _cmd_export(args) -> int:
     from capture.export import export_atlas_dirs
 
     side = export_atlas_dirs(args.recon_dirs, args.out, atlas_size=args.size, gutter=args.gutter, bits=args.bits,
-                             fmt=args.format, transfer=args.transfer, force=args.force, glb=not args.no_glb)
+                             fmt=args.format, transfer=args.transfer, force=args.force, glb=not args.no_glb,
+                             material_model=args.material_model, texture_sets=args.texture_sets)
     size = side["size"]
-    print(f"wrote {args.out} ({size['width']}x{size['height']}, {len(side['materials'])} material(s))")
+    out = Path(args.out)
+    print(f"wrote {out} ({size['width']}x{size['height']} atlas, {len(side['materials'])} material(s), "
+          f"{side['storage']['bits']}-bit)")
+    gl = side.get("gltf")
+    if gl:
+        err = gl["mapping"].get("f0_error_core", {}).get("max")
+        extra = f"; core mapping max |f0 error| {err:.4f}" if err is not None else ""
+        kind = "metallic-roughness" if gl["material_model"] == "metallic-roughness" else "metallic 0"
+        if gl["mapping"].get("specular_extension") or gl["material_model"] == "specular":
+            kind += " + KHR_materials_specular"
+        print(f"  {gl['file']}: glTF {kind}, Y-up, {gl['bits']}-bit PNG textures{extra}")
+    for p in sorted(q for q in out.rglob("*") if q.is_file()):
+        print(f"  {p.relative_to(out).as_posix()}  ({p.stat().st_size} bytes)")
     return 0
+
+
+def _texture_sets(text: str) -> tuple[str, ...]:
+    from capture.export import TEXTURE_SETS
+
+    names = tuple(t.strip() for t in text.split(",") if t.strip())
+    if names in ((), ("none",)):
+        return ()
+    if names == ("all",):
+        return TEXTURE_SETS
+    bad = [t for t in names if t not in TEXTURE_SETS]
+    if bad:
+        raise argparse.ArgumentTypeError(f"unknown texture set(s) {bad}; choose from {', '.join(TEXTURE_SETS)}, "
+                                         "'all' or 'none'")
+    return names
 
 
 def _add_export_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="atlas folder to create")
-    p.add_argument("--size", type=int, default=None, help="atlas size in texels (default: smallest that fits)")
+    p.add_argument("--size", type=int, default=None, help="square atlas size in texels (default: the tight size "
+                   "that fits, sides multiples of 4)")
     p.add_argument("--gutter", type=int, default=4, help="texels between materials (mip-map safety)")
-    p.add_argument("--bits", type=int, choices=(8, 16), default=8)
+    p.add_argument("--bits", type=int, choices=(8, 16), default=8,
+                   help="bits per channel of every PNG: atlas, GLB textures, texture sets (default 8)")
     p.add_argument("--format", choices=("png", "exr"), default="png")
     p.add_argument("--transfer", choices=("gamma2.2", "srgb"), default="gamma2.2",
                    help="colour encoding of K_diffuse/K_specular (Schüler: gamma 2.2)")
+    p.add_argument("--material-model", choices=("metallic-roughness", "specular"), default="metallic-roughness",
+                   help="GLB material: glTF metallic-roughness (metals as metallic 1; default) or metallic 0 "
+                        "with f0 in KHR_materials_specular")
+    p.add_argument("--texture-sets", type=_texture_sets, default="all", metavar="SETS",
+                   help="comma-separated engine texture sets written into textures/: gltf, unreal, unity-hdrp; "
+                        "'all' (default) or 'none'")
     p.add_argument("--no-glb", action="store_true", help="skip the glTF/GLB export")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
 

@@ -14,7 +14,10 @@ An atlas folder (layout and schema in ``docs/export.md``):
 - ``absorption.exr`` / ``coat.exr`` (only when a material has a coat) — linear float: absorption RGB,
   and (R = coat η₁, G = coat roughness, B = 0); materials without a coat hold 0 / (1, 0);
 - ``meshes/<name>.obj`` — each material's mesh with its UVs rewritten into its rectangle;
-- ``atlas.glb`` — the meshes with one glTF 2.0 material over the atlas (see :func:`write_glb`);
+- ``atlas.glb`` — the meshes, rotated to glTF's Y-up, with one glTF 2.0 metallic-roughness material over
+  the atlas (see :func:`write_glb`, :func:`to_metallic_roughness`);
+- ``textures/`` — the atlas's canonical maps as linear EXR and the engines' texture sets as PNG (glTF
+  metallic-roughness, Unreal ORM, Unity HDRP mask map; see :func:`write_texture_sets`);
 - ``atlas.json`` — the sidecar: format version, channel table, encoding, size, gutter, and each
   material's rectangle in pixels and in UV.
 
@@ -34,6 +37,7 @@ import re
 import struct
 import tempfile
 import warnings
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,8 +54,9 @@ from renderer.mesh import Mesh, MeshError, load_mesh, save_mesh
 from .outputs import atomic_folder, check_output, json_text
 
 __all__ = [
-    "ATLAS_FORMAT", "ExportError", "ExportWarning", "Material", "export_atlas", "export_atlas_dirs",
-    "load_reconstruction", "read_atlas", "write_glb", "write_maps",
+    "ATLAS_FORMAT", "MATERIAL_MODELS", "TEXTURE_SETS", "ExportError", "ExportWarning", "Material", "export_atlas",
+    "export_atlas_dirs", "from_metallic_roughness", "gltf_textures", "load_reconstruction", "read_atlas", "read_glb",
+    "tag_png", "to_metallic_roughness", "write_glb", "write_maps", "write_texture_sets", "yup_to_zup", "zup_to_yup",
 ]
 
 #: Version of the atlas folder format (``atlas.json`` → ``format``).
@@ -61,11 +66,14 @@ MAP_CHANNELS = {"albedo": 3, "f0": 3, "roughness": 1, "absorption": 3, "mask": 1
 REQUIRED = ("albedo",)
 #: Values of maps a diffuse-only model (e.g. Lambert) does not have: no specular reflection.
 DIFFUSE_ONLY_DEFAULTS = {"f0": 0.0, "roughness": 1.0}
+#: F0 of glTF's dielectric (ior 1.5): ((1.5 − 1)/(1.5 + 1))².
+GLTF_DIELECTRIC_F0 = 0.04
+#: GLB material models: glTF's metallic-roughness (metals as metallic = 1) or the metallic = 0 + specular form.
+MATERIAL_MODELS = ("metallic-roughness", "specular")
+#: Engine texture sets written into ``textures/`` (see docs/export.md).
+TEXTURE_SETS = ("gltf", "unreal", "unity-hdrp")
 _RANGES = {"albedo": (0.0, 1.0), "f0": (0.0, 1.0), "roughness": (0.0, 1.0), "mask": (0.0, 1.0),
            "coverage": (0.0, 1.0), "absorption": (0.0, math.inf)}
-#: KHR_materials_specular: f0 = min(F0(ior) · specularColorFactor · texture, 1); with ior 1.5,
-#: F0(ior) = 0.04, so a factor of 25 makes the texture hold f0 itself.
-_SPEC_FACTOR = 25.0
 
 
 class ExportError(ValueError):
@@ -217,21 +225,22 @@ def load_reconstruction(folder, name: str | None = None) -> Material:
 def write_maps(maps: Mapping[str, Tensor], out, previews: bool = True, half: bool = False) -> list[Path]:
     """Write each map as ``<name>.exr`` (linear float, or half) and, with ``previews``, ``<name>.png``.
 
-    Previews: colour maps (albedo, f0) sRGB-encoded; scalar maps and absorption (divided by its
-    maximum when above 1) written linearly. The folder is created if missing. Returns the paths.
+    EXRs carry the Rec. 709 / D65 ``chromaticities`` attribute. Previews: colour maps (albedo, f0)
+    sRGB-encoded with an sRGB chunk; scalar maps and absorption (divided by its maximum when above 1)
+    written linearly with gAMA 1.0 (:func:`tag_png`). The folder is created if missing. Returns the paths.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for k, v in maps.items():
         x = _to_hwc(v, k, f"write_maps({out})")
-        imageio.write_exr(out / f"{k}.exr", x, half=half)
+        imageio.write_exr(out / f"{k}.exr", x, half=half, chromaticities="rec709")
         written.append(out / f"{k}.exr")
         if previews:
             transfer = "srgb" if k in ("albedo", "f0") else "linear"
             if k == "absorption" and x.max() > 1:
                 x = x / x.max()
-            imageio.write_png(out / f"{k}.png", x, transfer=transfer)
+            _write_png(out / f"{k}.png", x, transfer=transfer)
             written.append(out / f"{k}.png")
     return written
 
@@ -269,17 +278,26 @@ def _materials(inputs) -> list[Material]:
 def export_atlas(
     materials, out, *, atlas_size: int | tuple[int, int] | None = None, gutter: int = 4, bits: int = 8,
     fmt: str = "png", transfer: str = "gamma2.2", force: bool = False, glb: bool = True,
+    material_model: str = "metallic-roughness", texture_sets: Sequence[str] | None = TEXTURE_SETS,
 ) -> dict:
     """Pack one or many materials into Schüler's two-RGBA atlas and write the atlas folder ``out``.
 
     Args:
         materials: a :class:`Material`, a reconstruction folder, a list of either, or ``{name: maps}``.
         out: the atlas folder to create (refused if it exists, unless ``force``).
-        atlas_size: None (smallest power-of-two square that fits), an int (square) or (width, height).
-        gutter: free texels around each material, filled by dilation (mip levels up to log2(gutter) stay clean).
-        bits: 8 or 16 for PNG textures. fmt: ``"png"`` or ``"exr"`` (float EXR of the same encoded values).
+        atlas_size: None (the tight size, sides multiples of 4: one 256² material gives 256²), ``"pow2"``
+            (smallest power-of-two square), an int (square) or (width, height); see
+            :func:`materials.atlas.pack_rectangles`.
+        gutter: texels between materials, filled by dilation (mip levels up to log2(gutter) stay clean);
+            none at the atlas border (sampled clamp-to-edge).
+        bits: 8 or 16 for every PNG (atlas, GLB textures, texture sets).
+        fmt: ``"png"`` or ``"exr"`` (float EXR of the same encoded values) for tex1/tex2.
         transfer: colour encoding of the RGB channels, ``"gamma2.2"`` (Schüler) or ``"srgb"``.
         force: replace an existing ``out``. glb: also write ``atlas.glb`` (needs every material to have a mesh).
+        material_model: the GLB's material, ``"metallic-roughness"`` (default; :func:`to_metallic_roughness`)
+            or ``"specular"`` (metallic 0, f0 in KHR_materials_specular).
+        texture_sets: engine texture sets written into ``textures/`` with the linear EXR maps
+            (:func:`write_texture_sets`); None or ``()`` writes no ``textures/`` folder.
 
     Returns:
         The sidecar dict written to ``out/atlas.json``.
@@ -294,10 +312,18 @@ def export_atlas(
         raise ExportError(f"bits must be 8 or 16, got {bits!r}")
     if transfer not in ("gamma2.2", "srgb"):
         raise ExportError(f"transfer must be 'gamma2.2' (Schüler) or 'srgb', got {transfer!r}")
+    if material_model not in MATERIAL_MODELS:
+        raise ExportError(f"material_model must be one of {list(MATERIAL_MODELS)}, got {material_model!r}")
+    if isinstance(texture_sets, str):
+        texture_sets = [texture_sets]
+    texture_sets = tuple(texture_sets or ())
+    unknown = [t for t in texture_sets if t not in TEXTURE_SETS]
+    if unknown:
+        raise ExportError(f"unknown texture set(s) {unknown}; choose from {list(TEXTURE_SETS)}")
     check_output(out, _input_folders(materials), force=force, error=ExportError, force_flag="force=True (--force)")
     mats = _materials(materials)
     prepared = [_prepare(m) for m in mats]
-    tex, coverage, coat = [], [], []
+    tex, lin, coverage, coat = [], [], [], []
     any_coat = any("absorption" in p or m.coat_ior is not None for m, p in zip(mats, prepared, strict=True))
     for m, p in zip(mats, prepared, strict=True):
         with warnings.catch_warnings(record=True) as caught:
@@ -306,6 +332,8 @@ def export_atlas(
         for w in caught:
             warnings.warn(f"material '{m.name}': {w.message}", ExportWarning, stacklevel=2)
         tex.append(torch.cat([t1, t2], dim=-1))
+        mask = p.get("mask", torch.ones_like(p["roughness"]))
+        lin.append(torch.cat([p["albedo"], p["f0"], p["roughness"], mask], dim=-1))
         cov = p.get("coverage")
         if cov is None and "mask" in p:
             cov = p["mask"]
@@ -326,6 +354,9 @@ def export_atlas(
     except A.AtlasError as err:
         raise ExportError(f"{out}: {err}") from err
     atlas = A.compose(tex, packing, gutter, coverage)
+    lin_atlas = A.compose(lin, packing, gutter, coverage)
+    lin_maps = {"albedo": lin_atlas[..., 0:3], "f0": lin_atlas[..., 3:6], "roughness": lin_atlas[..., 6:7],
+                "mask": lin_atlas[..., 7:8]}
     coat_atlas = A.compose(coat, packing, gutter, coverage) if any_coat else None
     width, height = packing.size
 
@@ -370,20 +401,24 @@ def export_atlas(
         glb = not without
         if without and len(without) < len(mats):  # all without a mesh: nothing to put in a GLB, silently
             warnings.warn(f"no atlas.glb: material(s) {without} have no mesh", ExportWarning, stacklevel=2)
-    if glb:
-        sidecar["gltf"] = {"file": "atlas.glb", "material": _GLTF_DOC}
+    gl_tex = gltf_textures(lin_maps, material_model, bits) if glb or texture_sets else None
+    set_tex = gl_tex if material_model == "metallic-roughness" else None
 
     # -- write everything into a temp folder, then rename into place
     with atomic_folder(out, force=force, error=ExportError, force_flag="force=True (--force)") as tmp:
         for k, t in (("tex1", atlas[..., :4]), ("tex2", atlas[..., 4:])):
-            if fmt == "png":
-                imageio.write_png(tmp / f"{k}.png", t, bits=bits, transfer="linear")
+            if fmt == "png":  # values already encoded by `transfer`: written as is, tagged with it
+                _write_png(tmp / f"{k}.png", t, bits=bits, transfer="linear", intent=transfer)
             else:
                 imageio.write_exr(tmp / f"{k}.exr", t)
         if coat_atlas is not None:
-            imageio.write_exr(tmp / "absorption.exr", coat_atlas[..., :3])
+            imageio.write_exr(tmp / "absorption.exr", coat_atlas[..., :3], chromaticities="rec709")
             zero = torch.zeros_like(coat_atlas[..., :1])
             imageio.write_exr(tmp / "coat.exr", torch.cat([coat_atlas[..., 3:5], zero], -1))
+        if texture_sets:
+            written = write_texture_sets(tmp / "textures", lin_maps, texture_sets, bits, set_tex)
+            sidecar["texture_sets"] = {"folder": "textures", "files": written, "bits": bits,
+                                       "layout": "same UVs as the atlas (docs/export.md, texture sets)"}
         meshes = []
         for m, rect in zip(mats, packing.rects, strict=True):
             if m.mesh is None:
@@ -398,8 +433,8 @@ def export_atlas(
             save_mesh(moved, tmp / "meshes" / f"{m.name}.obj")
             meshes.append(moved)
         if glb:
-            dec = A.decode_schuler(atlas[..., :4], atlas[..., 4:], transfer)
-            write_glb(tmp / "atlas.glb", meshes, dec)
+            sidecar["gltf"] = write_glb(tmp / "atlas.glb", meshes, lin_maps, material_model=material_model,
+                                        bits=bits, textures=gl_tex)
         (tmp / "atlas.json").write_text(json_text(sidecar) + "\n")
     return sidecar
 
@@ -478,46 +513,388 @@ def read_atlas(folder) -> dict[str, dict[str, Tensor]]:
 
 
 # --------------------------------------------------------------------------------------------
-# glTF 2.0 binary
+# glTF metallic-roughness mapping
 
 
-_GLTF_DOC = {
-    "model": "glTF 2.0 pbrMetallicRoughness (metallic 0) + KHR_materials_specular + KHR_materials_ior (1.5)",
-    "baseColorTexture": "RGB = albedo, sRGB (glTF mandates sRGB); A = mask, linear",
-    "metallicRoughnessTexture": "R = 0 (unused), G = roughness r (linear, perceptual; glTF alpha = r^2 like ours), "
-                                "B = metallic = 0",
-    "specularColorTexture": "RGB = f0 / 1, sRGB; specularColorFactor 25 so that f0 = 0.04 * 25 * texture",
+#: An F0 error of the core mapping above this (half an 8-bit code) makes the GLB carry KHR_materials_specular.
+SPECULAR_TOLERANCE = 0.5 / 255
+_CHUNK = 1 << 15
+
+
+def _rgb01(x, name: str) -> Tensor:
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(x)
+    if not isinstance(x, Tensor) or x.dim() < 1 or x.shape[-1] != 3:
+        shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+        raise ExportError(f"{name} must be a tensor [..., 3] (linear RGB), got {shape}")
+    if not x.is_floating_point():
+        raise ExportError(f"{name} must be floating point, got {x.dtype}")
+    bad = ~torch.isfinite(x)
+    if bad.any():
+        raise ExportError(f"{name} has {int(bad.sum())} NaN/inf value(s)")
+    out = (x < 0) | (x > 1)
+    if out.any():
+        raise ExportError(f"{name} has {int(out.sum())} value(s) outside [0, 1] (range {x.min().item():.4g}.."
+                          f"{x.max().item():.4g}); clamp the map first")
+    return x
+
+
+def _best_base(a: Tensor, f: Tensor, m: Tensor) -> tuple[Tensor, Tensor]:
+    """For metallic ``m [N, K]``: the least-squares base colour ``[N, K, 3]`` (clamped, exact: the cost is a
+    separable convex quadratic in each channel) and the cost ``[N, K]``."""
+    m3, k = m[..., None], (1.0 - m[..., None])
+    a, f = a[:, None], f[:, None]
+    b = ((k * a + m3 * (f - GLTF_DIELECTRIC_F0 * k)) / (k * k + m3 * m3)).clamp(0.0, 1.0)
+    cost = ((k * b - a) ** 2 + (GLTF_DIELECTRIC_F0 * k + m3 * b - f) ** 2).sum(-1)
+    return b, cost
+
+
+def _metallic(a: Tensor, f: Tensor) -> Tensor:
+    """Per-texel metallic ``[N]`` minimising the core cost: exact dielectrics (cost 0 at m = 0) and exact
+    metals (cost 0 at m = 1) directly, the others by a 17-point grid and four 9-point zooms (step 1/16384)."""
+    m = torch.zeros(a.shape[0], dtype=a.dtype)
+    ends = torch.tensor([0.0, 1.0], dtype=a.dtype).expand(a.shape[0], 2)
+    _, cost = _best_base(a, f, ends)
+    exact0, exact1 = cost[:, 0] <= 1e-12, cost[:, 1] <= 1e-12
+    m[~exact0 & exact1] = 1.0
+    rest = ~(exact0 | exact1)
+    if not rest.any():
+        return m
+    a, f = a[rest], f[rest]
+    grid = torch.linspace(0.0, 1.0, 17, dtype=a.dtype)
+    _, cost = _best_base(a, f, grid.expand(a.shape[0], -1))
+    best = grid[cost.argmin(-1)]  # ties: the smallest metallic (first minimum)
+    step = 1.0 / 16
+    offsets = torch.linspace(-1.0, 1.0, 9, dtype=a.dtype)
+    for _ in range(4):
+        cand = (best[:, None] + step * offsets).clamp(0.0, 1.0)
+        _, cost = _best_base(a, f, cand)
+        best = cand.gather(1, cost.argmin(-1, keepdim=True))[:, 0]
+        step /= 4
+    m[rest] = best
+    return m
+
+
+def to_metallic_roughness(albedo: Tensor, f0: Tensor, levels: int | None = 255) -> dict[str, Tensor]:
+    """Our (albedo, f0) → glTF metallic-roughness (base colour, metallic) plus the dielectric F0 of
+    KHR_materials_specular, per texel.
+
+    glTF 2.0 (Appendix B) defines, for base colour b and metallic m: diffuse colour c_diff = (1 − m)·b and
+    F0 = mix(0.04, b, m) = 0.04·(1 − m) + m·b; with KHR_materials_specular the 0.04 becomes the dielectric
+    F0 t = min(0.04 · specularColorFactor · specularColorTexture, 1). Two steps:
+
+    1. core: (b, m) minimise |(1 − m) b − albedo|² + |0.04 (1 − m) + m b − f0|² over b ∈ [0, 1]³,
+       m ∈ [0, 1] — exact for dielectrics with f0 = 0.04 (m = 0, b = albedo) and for metals with albedo 0
+       (m = 1, b = f0); the best blend in between. For a fixed m the best b is closed-form per channel;
+       m is found by a grid search and four zooms (resolution 1/16384), then rounded to ``levels``
+       (the code of the texture that stores it; None: not rounded) and b re-solved for the stored m.
+    2. extension: t = clamp((f0 − m b)/(1 − m), 0, 1) makes F0 exact wherever the core left an error
+       (t = 0.04 where m = 1).
+
+    Args:
+        albedo, f0: ``[..., 3]`` linear, in [0, 1]. levels: quantisation of metallic, e.g. 255 or 65535.
+
+    Returns:
+        ``base_color [..., 3]``, ``metallic [..., 1]``, ``specular_f0 [..., 3]`` (t), and the errors of what a
+        viewer reads back (:func:`from_metallic_roughness`): ``diffuse_error``, ``f0_error_core`` (without the
+        extension), ``f0_error`` (with it), each ``[..., 3]`` signed (read back − ours).
+
+    Raises:
+        ExportError: shapes that differ or are not ``[..., 3]``, NaN/inf, values outside [0, 1], bad ``levels``.
+    """
+    albedo, f0 = _rgb01(albedo, "albedo"), _rgb01(f0, "f0")
+    if albedo.shape != f0.shape:
+        raise ExportError(f"albedo {tuple(albedo.shape)} and f0 {tuple(f0.shape)} must have the same shape")
+    if levels is not None and (not isinstance(levels, int) or isinstance(levels, bool) or levels < 1):
+        raise ExportError(f"levels must be a positive integer (255 for 8 bits) or None, got {levels!r}")
+    shape, dtype = albedo.shape, albedo.dtype
+    work = torch.float64 if dtype == torch.float64 else torch.float32
+    a = albedo.reshape(-1, 3).to(work)
+    f = f0.reshape(-1, 3).to(work)
+    m = torch.cat([_metallic(a[i: i + _CHUNK], f[i: i + _CHUNK]) for i in range(0, a.shape[0], _CHUNK)]) \
+        if a.shape[0] else a.new_zeros(0)
+    if levels is not None:
+        m = torch.round(m * levels) / levels
+    b, _ = _best_base(a, f, m[:, None])
+    b, m = b[:, 0], m[:, None]
+    k = 1.0 - m
+    t = torch.where(k > 1e-9, (f - m * b) / k.clamp_min(1e-9), torch.full_like(f, GLTF_DIELECTRIC_F0)).clamp(0.0, 1.0)
+    core = from_metallic_roughness(b, m)
+    ext = from_metallic_roughness(b, m, t)
+    out = {"base_color": b, "metallic": m, "specular_f0": t, "diffuse_error": core["albedo"] - a,
+           "f0_error_core": core["f0"] - f, "f0_error": ext["f0"] - f}
+    return {key: v.reshape(*shape[:-1], v.shape[-1]).to(dtype) for key, v in out.items()}
+
+
+def from_metallic_roughness(base_color: Tensor, metallic: Tensor, specular_f0: Tensor | None = None
+                            ) -> dict[str, Tensor]:
+    """glTF metallic-roughness → our (albedo, f0), by glTF 2.0's definitions (Appendix B):
+    albedo = (1 − m)·b, f0 = (1 − m)·t + m·b with t = ``specular_f0`` (KHR_materials_specular's dielectric
+    F0) or 0.04 without the extension.
+
+    Args:
+        base_color: ``[..., 3]`` linear in [0, 1]. metallic: ``[..., 1]`` (or ``[...]``) in [0, 1].
+        specular_f0: None or ``[..., 3]`` in [0, 1].
+
+    Raises:
+        ExportError: bad shapes, NaN/inf, values outside [0, 1].
+    """
+    b = _rgb01(base_color, "base_color")
+    if isinstance(metallic, Tensor) and metallic.dim() == b.dim() - 1:
+        metallic = metallic[..., None]
+    if not isinstance(metallic, Tensor) or metallic.shape != (*b.shape[:-1], 1):
+        shape = tuple(metallic.shape) if isinstance(metallic, Tensor) else type(metallic).__name__
+        raise ExportError(f"metallic must be a tensor [..., 1] matching base_color {tuple(b.shape)}, got {shape}")
+    m = _rgb01(metallic.expand(b.shape), "metallic")[..., :1]
+    t = torch.full_like(b, GLTF_DIELECTRIC_F0) if specular_f0 is None else _rgb01(specular_f0, "specular_f0")
+    if t.shape != b.shape:
+        raise ExportError(f"specular_f0 {tuple(t.shape)} must match base_color {tuple(b.shape)}")
+    return {"albedo": (1.0 - m) * b, "f0": (1.0 - m) * t + m * b}
+
+
+def zup_to_yup(x) -> Tensor:
+    """The dataset's Z-up world → glTF's Y-up: a rotation of −90° about X, (x, y, z) → (x, z, −y).
+
+    Applies to positions and normals alike (a rotation: lengths and winding are kept). ``x``: ``[..., 3]``.
+    """
+    x = torch.as_tensor(x)
+    if x.dim() < 1 or x.shape[-1] != 3:
+        raise ExportError(f"zup_to_yup needs points [..., 3], got {tuple(x.shape)}")
+    return torch.stack([x[..., 0], x[..., 2], -x[..., 1]], dim=-1)
+
+
+def yup_to_zup(x) -> Tensor:
+    """Inverse of :func:`zup_to_yup`: (x, y, z) → (x, −z, y) (what glTF importers such as Blender's apply)."""
+    x = torch.as_tensor(x)
+    if x.dim() < 1 or x.shape[-1] != 3:
+        raise ExportError(f"yup_to_zup needs points [..., 3], got {tuple(x.shape)}")
+    return torch.stack([x[..., 0], -x[..., 2], x[..., 1]], dim=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# PNG with colour intent
+
+
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+
+#: cHRM of Rec. 709 / sRGB (white D65, red, green, blue; CIE xy × 100000).
+_CHRM = struct.pack(">8I", 31270, 32900, 64000, 33000, 30000, 60000, 15000, 6000)
+_INTENT_CHUNKS = {
+    # sRGB (rendering intent 0, perceptual) with the gAMA and cHRM the PNG spec asks writers to add
+    "srgb": _chunk(b"sRGB", b"\x00") + _chunk(b"gAMA", struct.pack(">I", 45455)) + _chunk(b"cHRM", _CHRM),
+    "gamma2.2": _chunk(b"gAMA", struct.pack(">I", 45455)) + _chunk(b"cHRM", _CHRM),  # Schüler's 1/2.2 encoding
+    "linear": _chunk(b"gAMA", struct.pack(">I", 100000)),  # data, not colour: gamma 1, no sRGB chunk
 }
 
 
-def _png_bytes(img: Tensor, transfer: str) -> bytes:
+def tag_png(data: bytes, intent: str) -> bytes:
+    """Insert the colour-intent chunks of ``intent`` right after IHDR of the PNG ``data``.
+
+    ``"srgb"``: sRGB (perceptual) + gAMA 0.45455 + cHRM (Rec. 709, D65), for sRGB-encoded colour;
+    ``"gamma2.2"``: gAMA 0.45455 + cHRM (Schüler's atlas colours); ``"linear"``: gAMA 1.0 only, for data
+    (roughness, metallic, masks). Existing gAMA, sRGB, cHRM and iCCP chunks are dropped first.
+    """
+    if intent not in _INTENT_CHUNKS:
+        raise ExportError(f"PNG intent must be one of {sorted(_INTENT_CHUNKS)}, got {intent!r}")
+    if data[:8] != b"\x89PNG\r\n\x1a\n" or data[12:16] != b"IHDR":
+        raise ExportError("tag_png: not a PNG (no signature or IHDR chunk)")
+    out, pos = [data[:8]], 8
+    while pos < len(data):
+        if pos + 12 > len(data):
+            raise ExportError("tag_png: truncated PNG chunk")
+        n = struct.unpack(">I", data[pos: pos + 4])[0]
+        kind, end = data[pos + 4: pos + 8], pos + 12 + n
+        if kind not in (b"gAMA", b"sRGB", b"cHRM", b"iCCP"):
+            out.append(data[pos:end])
+        if kind == b"IHDR":
+            out.append(_INTENT_CHUNKS[intent])
+        pos = end
+    return b"".join(out)
+
+
+def _png_bytes(img: Tensor, bits: int = 8, transfer: str = "srgb", intent: str | None = None) -> bytes:
+    """PNG file bytes of a linear image (encoded by ``transfer``), tagged with ``intent`` (default: by transfer)."""
     fd, tmp = tempfile.mkstemp(suffix=".png")
     os.close(fd)
     try:
-        imageio.write_png(tmp, img, bits=8, transfer=transfer)
-        return Path(tmp).read_bytes()
+        imageio.write_png(tmp, img, bits=bits, transfer=transfer)
+        data = Path(tmp).read_bytes()
     finally:
         os.unlink(tmp)
+    return tag_png(data, intent or transfer)
 
 
-def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor]) -> None:
+def _write_png(path, img: Tensor, bits: int = 8, transfer: str = "srgb", intent: str | None = None) -> None:
+    imageio.atomic_write_bytes(path, _png_bytes(img, bits, transfer, intent))
+
+
+# --------------------------------------------------------------------------------------------
+# glTF textures, engine texture sets, GLB
+
+
+def _gltf_doc(model: str, specular: bool) -> dict:
+    if model == "specular":
+        return {
+            "model": "glTF 2.0 pbrMetallicRoughness with metallic 0 + KHR_materials_specular",
+            "baseColorTexture": "RGB = albedo (sRGB), A = mask (linear)",
+            "metallicRoughnessTexture": "R = 1 (occlusion, unused), G = roughness r (perceptual, alpha = r^2), "
+                                        "B = metallic = 0; linear",
+            "specularColorTexture": "RGB = f0 (sRGB); specularColorFactor 25, so F0 = 0.04 * 25 * texture = f0",
+        }
+    doc = {
+        "model": "glTF 2.0 pbrMetallicRoughness" + (" + KHR_materials_specular" if specular else ""),
+        "baseColorTexture": "RGB = base colour b (sRGB), A = mask (linear); albedo = (1 - m) b",
+        "metallicRoughnessTexture": "R = 1 (occlusion, unused), G = roughness r (perceptual, alpha = r^2, as ours), "
+                                    "B = metallic m; linear",
+        "mapping": "per texel least squares of (1-m) b = albedo and 0.04 (1-m) + m b = f0 (docs/export.md)",
+    }
+    if specular:
+        doc["specularColorTexture"] = ("RGB = dielectric F0 t (sRGB), specularColorFactor 25: "
+                                       "f0 = (1 - m) t + m b exactly")
+    return doc
+
+
+def gltf_textures(maps: Mapping[str, Tensor], material_model: str = "metallic-roughness", bits: int = 8) -> dict:
+    """The glTF textures of linear canonical maps (albedo, f0, roughness, optional mask), as tagged PNG bytes.
+
+    Returns ``{"images": {"baseColor", "metallicRoughness"[, "specularColor"]: bytes}, "specular": bool,
+    "alpha_mask": bool, "doc": dict, "mapping": dict of error statistics, "mr": to_metallic_roughness(...)}``.
+    ``material_model`` ``"metallic-roughness"`` (default) uses :func:`to_metallic_roughness` and adds
+    KHR_materials_specular only when the core mapping's F0 error exceeds :data:`SPECULAR_TOLERANCE`
+    somewhere; ``"specular"`` writes metallic 0 with f0 in the specular colour (the older form).
+    """
+    if material_model not in MATERIAL_MODELS:
+        raise ExportError(f"material_model must be one of {list(MATERIAL_MODELS)}, got {material_model!r}")
+    if bits not in (8, 16):
+        raise ExportError(f"bits must be 8 or 16, got {bits!r}")
+    missing = [k for k in ("albedo", "f0", "roughness") if k not in maps]
+    if missing:
+        raise ExportError(f"gltf_textures needs maps {missing} (have {sorted(maps)})")
+    albedo, f0 = maps["albedo"], maps["f0"]
+    rough = maps["roughness"]
+    if rough.dim() == 2:
+        rough = rough[..., None]
+    mask = maps.get("mask")
+    mask = torch.ones_like(rough) if mask is None else (mask[..., None] if mask.dim() == 2 else mask)
+    if not (albedo.shape[:2] == f0.shape[:2] == rough.shape[:2] == mask.shape[:2]) or rough.shape[-1] != 1 \
+            or mask.shape[-1] != 1:
+        raise ExportError(f"gltf_textures: maps must share one size, with 3 channels for albedo/f0 and 1 for "
+                          f"roughness/mask; got { {k: tuple(v.shape) for k, v in maps.items()} }")
+    rough = rough.clamp(0.0, 1.0)
+    mask = mask.clamp(0.0, 1.0)
+    one = torch.ones_like(rough)
+    if material_model == "specular":
+        base, metal, spec, use_spec = albedo, torch.zeros_like(rough), f0, True
+        mr, mapping = None, {"rule": "metallic 0; specularColor = f0 (factor 25)"}
+    else:
+        mr = to_metallic_roughness(albedo, f0, levels=(1 << bits) - 1)
+        base, metal, spec = mr["base_color"], mr["metallic"], mr["specular_f0"]
+        core_max = mr["f0_error_core"].abs().max().item() if mr["f0_error_core"].numel() else 0.0
+        use_spec = core_max > SPECULAR_TOLERANCE
+
+        def stats(e):
+            return {"max": round(e.abs().max().item(), 6) if e.numel() else 0.0,
+                    "rms": round(e.pow(2).mean().sqrt().item(), 6) if e.numel() else 0.0}
+
+        mapping = {
+            "rule": "least squares per texel (docs/export.md); metallic rounded to the stored code",
+            "texels_metallic": int((metal > 0.5).sum()), "texels": int(metal.numel()),
+            "diffuse_error": stats(mr["diffuse_error"]), "f0_error_core": stats(mr["f0_error_core"]),
+            "f0_error_with_specular_extension": stats(mr["f0_error"]),
+            "specular_extension": use_spec,
+        }
+    images = {
+        "baseColor": _png_bytes(torch.cat([base, mask], -1), bits, "srgb"),
+        "metallicRoughness": _png_bytes(torch.cat([one, rough, metal], -1), bits, "linear"),
+    }
+    if use_spec:
+        images["specularColor"] = _png_bytes(spec, bits, "srgb")
+    return {"images": images, "specular": use_spec, "alpha_mask": bool((mask < 1).any()),
+            "doc": _gltf_doc(material_model, use_spec), "mapping": mapping, "mr": mr,
+            "base_color": base, "metallic": metal, "roughness": rough, "mask": mask}
+
+
+def write_texture_sets(folder, maps: Mapping[str, Tensor], sets: Sequence[str] = TEXTURE_SETS, bits: int = 8,
+                       textures: dict | None = None) -> dict:
+    """Write the engines' texture sets of linear canonical maps into ``folder`` (created if missing).
+
+    Always the canonical maps as linear float EXR (``albedo``, ``f0``, ``roughness``, ``mask``; Rec. 709
+    chromaticities); then per set (``sets`` ⊆ :data:`TEXTURE_SETS`), PNGs of ``bits`` bits:
+
+    - ``gltf``: ``gltf_baseColor.png`` (sRGB; A = mask), ``gltf_metallicRoughness.png`` (linear;
+      R = 1, G = roughness, B = metallic), ``gltf_specularColor.png`` (sRGB) when the mapping needs it;
+    - ``unreal``: ``unreal_BaseColor.png`` (sRGB; A = mask), ``unreal_ORM.png`` (linear; R = occlusion 1,
+      G = roughness, B = metallic);
+    - ``unity-hdrp``: ``unity_BaseColorMap.png`` (sRGB; A = mask), ``unity_MaskMap.png`` (linear;
+      R = metallic, G = occlusion 1, B = detail mask 1, A = smoothness 1 − roughness).
+
+    Colour PNGs carry an sRGB chunk, data PNGs gAMA 1.0 (:func:`tag_png`). ``textures``: a result of
+    :func:`gltf_textures` with the metallic-roughness model to reuse. Returns ``{set: {role: file name}}``.
+    """
+    folder = Path(folder)
+    sets = tuple(sets)
+    unknown = [s for s in sets if s not in TEXTURE_SETS]
+    if unknown:
+        raise ExportError(f"unknown texture set(s) {unknown}; choose from {list(TEXTURE_SETS)}")
+    if textures is None or textures.get("mr") is None:
+        textures = gltf_textures(maps, "metallic-roughness", bits)
+    folder.mkdir(parents=True, exist_ok=True)
+    written: dict = {"exr": {}}
+    for k, img in (("albedo", maps["albedo"]), ("f0", maps["f0"]), ("roughness", textures["roughness"]),
+                   ("mask", textures["mask"])):
+        imageio.write_exr(folder / f"{k}.exr", img, chromaticities="rec709")
+        written["exr"][k] = f"{k}.exr"
+    img = textures["images"]
+    files = {}
+    if "gltf" in sets:
+        files["gltf"] = {"baseColor": ("gltf_baseColor.png", img["baseColor"]),
+                         "metallicRoughness": ("gltf_metallicRoughness.png", img["metallicRoughness"])}
+        if "specularColor" in img:
+            files["gltf"]["specularColor"] = ("gltf_specularColor.png", img["specularColor"])
+    if "unreal" in sets:
+        files["unreal"] = {"BaseColor": ("unreal_BaseColor.png", img["baseColor"]),
+                           "ORM": ("unreal_ORM.png", img["metallicRoughness"])}  # same channels as glTF's
+    if "unity-hdrp" in sets:
+        one = torch.ones_like(textures["roughness"])
+        mask_map = torch.cat([textures["metallic"], one, one, 1.0 - textures["roughness"]], -1)
+        # the alpha channel of write_png is linear, like the others here
+        files["unity-hdrp"] = {"BaseColorMap": ("unity_BaseColorMap.png", img["baseColor"]),
+                               "MaskMap": ("unity_MaskMap.png", _png_bytes(mask_map, bits, "linear"))}
+    for name, roles in files.items():
+        written[name] = {}
+        for role, (fname, data) in roles.items():
+            imageio.atomic_write_bytes(folder / fname, data)
+            written[name][role] = fname
+    return written
+
+
+def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor], *,
+              material_model: str = "metallic-roughness", bits: int = 8, textures: dict | None = None) -> dict:
     """Write ``meshes`` (UVs already in atlas space) as one GLB with one material over the atlas ``maps``.
 
-    Channel colour spaces (glTF 2.0 §3.9 and the extensions' specs): baseColor RGB sRGB + alpha linear
-    (mask; ``alphaMode`` MASK when some mask < 1); metallicRoughness linear (G = roughness, B = metallic = 0);
-    KHR_materials_specular ``specularColorTexture`` RGB sRGB holding f0 with ``specularColorFactor`` 25 and
-    KHR_materials_ior 1.5, so F0 = 0.04 · 25 · f0 = f0 (the spec clamps it to 1). The specular scalar is 1.
+    ``maps``: linear canonical albedo, f0, roughness, optional mask ``[H, W, C]``. The material follows
+    :func:`gltf_textures` (default: glTF metallic-roughness, metals as metallic 1; KHR_materials_specular
+    only where a dielectric's f0 ≠ 0.04). Textures are PNGs of ``bits`` (8 or 16) bits per channel:
+    baseColor RGB sRGB + alpha linear (mask; ``alphaMode`` MASK when some mask < 1), metallicRoughness
+    linear (G = roughness, B = metallic), specularColor sRGB. Sampler: linear, mip-mapped, clamp to edge.
+    Geometry: the dataset's Z-up world is rotated to glTF's Y-up, (x, y, z) → (x, z, −y), normals too;
     glTF's UV origin is the top-left, so ``v_gltf = 1 − v``. Written atomically.
+
+    Returns:
+        The ``gltf`` entry of the sidecar: file name, material description, mapping error statistics.
     """
     path = Path(path)
     if not meshes:
         raise ExportError(f"{path}: no meshes to write")
-    albedo, f0, rough, mask = maps["albedo"], maps["f0"], maps["roughness"], maps["mask"]
-    images = [
-        _png_bytes(torch.cat([albedo, mask], -1), "srgb"),
-        _png_bytes(torch.cat([torch.zeros_like(rough), rough, torch.zeros_like(rough)], -1), "linear"),
-        _png_bytes(f0, "srgb"),
-    ]
+    if any(not isinstance(m, Mesh) for m in meshes):
+        raise ExportError(f"{path}: meshes must be renderer.mesh.Mesh objects")
+    if textures is None:
+        textures = gltf_textures(maps, material_model, bits)
+    images = [textures["images"]["baseColor"], textures["images"]["metallicRoughness"]]
+    if textures["specular"]:
+        images.append(textures["images"]["specularColor"])
     blob = bytearray()
     views, accessors = [], []
 
@@ -542,8 +919,8 @@ def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor]) -> None:
 
     gl_meshes, nodes = [], []
     for k, m in enumerate(meshes):
-        v = m.vertices.detach().cpu().numpy().astype(np.float32)
-        n = m.normals.detach().cpu().numpy().astype(np.float32)
+        v = zup_to_yup(m.vertices.detach().cpu().double()).numpy().astype(np.float32)
+        n = zup_to_yup(m.normals.detach().cpu().double()).numpy().astype(np.float32)
         uv = m.uvs.detach().cpu().numpy().astype(np.float32).copy()
         uv[:, 1] = 1.0 - uv[:, 1]
         idx = m.faces.cpu().numpy().astype(np.uint32).reshape(-1)
@@ -555,21 +932,22 @@ def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor]) -> None:
                                                                          "material": 0, "mode": 4}]})
         nodes.append({"name": m.name or f"mesh{k}", "mesh": k})
     image_ids = [add_view(b) for b in images]
-    alpha_mode = "MASK" if bool((mask < 1).any()) else "OPAQUE"
+    alpha_mode = "MASK" if textures["alpha_mask"] else "OPAQUE"
     material = {
         "name": "schuler_atlas",
         "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicRoughnessTexture": {"index": 1},
-                                 "metallicFactor": 0.0, "roughnessFactor": 1.0},
+                                 "metallicFactor": 1.0, "roughnessFactor": 1.0},
         "alphaMode": alpha_mode,
-        "extensions": {"KHR_materials_specular": {"specularColorTexture": {"index": 2},
-                                                  "specularColorFactor": [_SPEC_FACTOR] * 3, "specularFactor": 1.0},
-                       "KHR_materials_ior": {"ior": 1.5}},
     }
+    if textures["specular"]:
+        material["extensions"] = {"KHR_materials_specular": {
+            "specularColorTexture": {"index": 2}, "specularColorFactor": [1.0 / GLTF_DIELECTRIC_F0] * 3,
+            "specularFactor": 1.0}}
     if alpha_mode == "MASK":
         material["alphaCutoff"] = 0.5
     gltf = {
-        "asset": {"version": "2.0", "generator": "shadecap capture.export"},
-        "extensionsUsed": ["KHR_materials_specular", "KHR_materials_ior"],
+        "asset": {"version": "2.0", "generator": "shadecap capture.export",
+                  "extras": {"up_axis": "Y (the dataset's Z-up world rotated: (x, y, z) -> (x, z, -y))"}},
         "scene": 0, "scenes": [{"nodes": list(range(len(nodes)))}], "nodes": nodes, "meshes": gl_meshes,
         "materials": [material],
         "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}],
@@ -577,6 +955,8 @@ def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor]) -> None:
         "textures": [{"source": i, "sampler": 0} for i in range(len(image_ids))],
         "accessors": accessors, "bufferViews": views,
     }
+    if textures["specular"]:
+        gltf["extensionsUsed"] = ["KHR_materials_specular"]
     while len(blob) % 4:
         blob.append(0)
     gltf["buffers"] = [{"byteLength": len(blob)}]
@@ -586,3 +966,31 @@ def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor]) -> None:
     data = (struct.pack("<III", 0x46546C67, 2, total) + struct.pack("<II", len(js), 0x4E4F534A) + js
             + struct.pack("<II", len(blob), 0x004E4942) + bytes(blob))
     imageio.atomic_write_bytes(path, data)
+    return {"file": path.name, "up_axis": "Y", "frame": "(x, y, z) dataset -> (x, z, -y) glTF",
+            "bits": bits, "material_model": material_model, "material": textures["doc"],
+            "mapping": textures["mapping"]}
+
+
+def read_glb(path) -> tuple[dict, bytes]:
+    """Parse a GLB → (its JSON as a dict, its binary chunk). Raises ExportError on a malformed file."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as err:
+        raise ExportError(f"{path}: cannot read ({err})") from err
+    if len(raw) < 20 or raw[:4] != b"glTF" or struct.unpack("<I", raw[4:8])[0] != 2:
+        raise ExportError(f"{path}: not a glTF 2.0 binary (GLB) file")
+    total, n = struct.unpack("<I", raw[8:12])[0], struct.unpack("<I", raw[12:16])[0]
+    if total != len(raw) or raw[16:20] != b"JSON" or 20 + n > len(raw):
+        raise ExportError(f"{path}: truncated or malformed GLB (header length {total}, file {len(raw)} bytes)")
+    try:
+        js = json.loads(raw[20: 20 + n])
+    except ValueError as err:
+        raise ExportError(f"{path}: JSON chunk is not valid JSON ({err})") from err
+    pos, blob = 20 + n, b""
+    if pos + 8 <= len(raw):
+        m = struct.unpack("<I", raw[pos: pos + 4])[0]
+        if raw[pos + 4: pos + 8] != b"BIN\x00":
+            raise ExportError(f"{path}: second chunk is not BIN")
+        blob = raw[pos + 8: pos + 8 + m]
+    return js, blob

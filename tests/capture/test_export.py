@@ -46,7 +46,8 @@ def test_round_trip_two_materials(tmp_path, two):
     m1, m2 = two
     side = E.export_atlas([m1, m2], tmp_path / "atlas", gutter=3)
     names = sorted(os.listdir(tmp_path / "atlas"))
-    assert names == ["absorption.exr", "atlas.glb", "atlas.json", "coat.exr", "meshes", "tex1.png", "tex2.png"]
+    assert names == ["absorption.exr", "atlas.glb", "atlas.json", "coat.exr", "meshes", "tex1.png", "tex2.png",
+                     "textures"]
     assert sorted(os.listdir(tmp_path)) == ["atlas"]  # no temp folder left behind
     assert json.loads((tmp_path / "atlas" / "atlas.json").read_text()) == side
     assert side["textures"]["tex2"]["channels"]["A"] == "glossiness" and side["transfer"] == "gamma2.2"
@@ -101,11 +102,13 @@ def test_glb_reloads_through_trimesh(tmp_path, two):
         torch.testing.assert_close(torch.as_tensor(g.visual.uv, dtype=torch.float32), moved.uvs, atol=1e-6, rtol=0)
         mat = g.visual.material
         assert mat.baseColorTexture.size == (side["size"]["width"], side["size"]["height"])
-        assert mat.metallicFactor == 0.0
-    raw = (tmp_path / "a" / "atlas.glb").read_bytes()
-    js = json.loads(raw[20: 20 + int.from_bytes(raw[12:16], "little")])
+        assert mat.metallicFactor == 1.0  # the texture's B channel holds metallic
+    js, _ = E.read_glb(tmp_path / "a" / "atlas.glb")
+    # random f0 in [0.02, 0.92] with random albedo: the core mapping cannot carry every f0, the extension does
     ext = js["materials"][0]["extensions"]
-    assert ext["KHR_materials_specular"]["specularColorFactor"] == [25.0] * 3 and ext["KHR_materials_ior"]["ior"] == 1.5
+    assert ext["KHR_materials_specular"]["specularColorFactor"] == [25.0] * 3 and js["extensionsUsed"] == [
+        "KHR_materials_specular"]
+    assert side["gltf"]["mapping"]["specular_extension"] is True
 
 
 @pytest.mark.parametrize("fmt,bits", [("png", 16), ("exr", 8)])
@@ -175,7 +178,7 @@ def test_out_of_range_clamped_with_counts(tmp_path):
 
 
 def test_atlas_too_small_names_size_needed(tmp_path):
-    with pytest.raises(E.ExportError, match="needs at least 128x128"):
+    with pytest.raises(E.ExportError, match="needs at least 60x88"):
         E.export_atlas({"a": _maps(40, 60, 0), "b": _maps(40, 60, 1)}, tmp_path / "x", atlas_size=64)
     assert not (tmp_path / "x").exists() and os.listdir(tmp_path) == []
 
@@ -219,12 +222,12 @@ def test_missing_unreadable_and_existing(tmp_path):
 
 def test_failure_midway_leaves_previous_atlas_intact(tmp_path):
     E.export_atlas({"m": _maps(4, 4, 1)}, tmp_path / "o")
-    before = {p.name: p.read_bytes() for p in (tmp_path / "o").iterdir()}
+    before = {p.relative_to(tmp_path): p.read_bytes() for p in (tmp_path / "o").rglob("*") if p.is_file()}
     tiled = plane()
     tiled.uvs[:, 0] *= 3  # a tiling texture cannot go into an atlas: fails after the textures are written
     with pytest.raises(E.ExportError, match="outside"):
         E.export_atlas([E.Material("t", _maps(4, 4, 2), tiled)], tmp_path / "o", force=True)
-    assert {p.name: p.read_bytes() for p in (tmp_path / "o").iterdir()} == before
+    assert {p.relative_to(tmp_path): p.read_bytes() for p in (tmp_path / "o").rglob("*") if p.is_file()} == before
     assert sorted(os.listdir(tmp_path)) == ["o"]
 
 
@@ -235,3 +238,285 @@ def test_read_atlas_errors(tmp_path):
     (tmp_path / "o" / "tex2.png").unlink()
     with pytest.raises(E.ExportError, match=r"tex2\.png.*cannot read"):
         E.read_atlas(tmp_path / "o")
+
+
+# --------------------------------------------------------------------------------------------
+# glTF metallic-roughness, Y-up, texture sets (docs/export.md)
+
+GOLD, COPPER = (1.0, 0.78, 0.34), (0.95, 0.64, 0.54)
+
+
+def _regions(h=64, w=64):
+    """Gold, copper (metals: albedo 0), red plastic (f0 0.04), a gem-like dielectric (f0 0.08); roughness 0.25..0.7."""
+    albedo, f0 = torch.zeros(h, w, 3), torch.zeros(h, w, 3)
+    q = w // 4
+    for k, (a, f) in enumerate([((0, 0, 0), GOLD), ((0, 0, 0), COPPER), ((0.6, 0.1, 0.08), (0.04,) * 3),
+                                ((0.3, 0.45, 0.5), (0.08,) * 3)]):
+        albedo[:, k * q: (k + 1) * q] = torch.tensor(a)
+        f0[:, k * q: (k + 1) * q] = torch.tensor(f)
+    rough = torch.linspace(0.25, 0.7, h).reshape(h, 1, 1).expand(h, w, 1).contiguous()
+    return {"albedo": albedo, "f0": f0, "roughness": rough}
+
+
+def _png_from_bytes(data, tmp_path, name, transfer):
+    p = tmp_path / f"_{name}.png"
+    p.write_bytes(data)
+    return imageio.read_png(p, transfer=transfer)
+
+
+def _png_chunks(data):
+    out, pos = {}, 8
+    while pos < len(data):
+        n = int.from_bytes(data[pos: pos + 4], "big")
+        out.setdefault(data[pos + 4: pos + 8].decode(), data[pos + 8: pos + 8 + n])
+        pos += 12 + n
+    return out
+
+
+def _read_gltf_material(glb, tmp_path, use_extension=True):
+    """Parse our GLB independently of the writer: mesh in the dataset's frame, and maps read back by glTF's
+    definitions (albedo = (1 - m) b, f0 = mix(t or 0.04, b, m))."""
+    import numpy as np
+
+    from renderer.mesh import Mesh
+
+    js, blob = E.read_glb(glb)
+
+    def accessor(i, dtype, width):
+        acc = js["accessors"][i]
+        view = js["bufferViews"][acc["bufferView"]]
+        arr = np.frombuffer(blob, dtype=dtype, count=acc["count"] * width, offset=view["byteOffset"])
+        return arr.reshape(acc["count"], width)
+
+    prim = js["meshes"][0]["primitives"][0]
+    pos = torch.from_numpy(accessor(prim["attributes"]["POSITION"], np.float32, 3).copy())
+    nrm = torch.from_numpy(accessor(prim["attributes"]["NORMAL"], np.float32, 3).copy())
+    uv = torch.from_numpy(accessor(prim["attributes"]["TEXCOORD_0"], np.float32, 2).copy())
+    faces = accessor(prim["indices"], np.uint32, 1).reshape(-1, 3).astype(np.int64)
+    uv[:, 1] = 1 - uv[:, 1]  # glTF's top-left origin → ours
+    mesh = Mesh.from_arrays(E.yup_to_zup(pos).numpy(), faces, uv.numpy(), E.yup_to_zup(nrm).numpy())
+
+    def image(tex_index, transfer):
+        view = js["bufferViews"][js["images"][js["textures"][tex_index]["source"]]["bufferView"]]
+        data = blob[view["byteOffset"]: view["byteOffset"] + view["byteLength"]]
+        return _png_from_bytes(data, tmp_path, f"t{tex_index}", transfer), data
+
+    mat = js["materials"][0]
+    pbr = mat["pbrMetallicRoughness"]
+    base, _ = image(pbr["baseColorTexture"]["index"], "srgb")
+    mr, _ = image(pbr["metallicRoughnessTexture"]["index"], "linear")
+    metallic = (mr[..., 2:3] * pbr.get("metallicFactor", 1.0)).clamp(0, 1)
+    spec = None
+    ext = mat.get("extensions", {}).get("KHR_materials_specular")
+    if ext is not None and use_extension:
+        col, _ = image(ext["specularColorTexture"]["index"], "srgb")
+        spec = (0.04 * torch.tensor(ext["specularColorFactor"]) * col).clamp(max=1.0) * ext.get("specularFactor", 1)
+    back = E.from_metallic_roughness(base[..., :3], metallic, spec)
+    return mesh, {"albedo": back["albedo"], "f0": back["f0"], "roughness": mr[..., 1:2]}, js
+
+
+def _psnr(a, b, mask):
+    peak = b[mask].max()
+    mse = ((a - b)[mask] ** 2).mean()
+    return (10 * torch.log10(peak**2 / mse)).item()
+
+
+def _views(mesh, maps, size=72):
+    import materials
+    from renderer.camera import look_at
+    from renderer.lights import PointLight
+    from renderer.shading import render
+
+    model = materials.get("ggx-lambert")
+    out = []
+    for eye in ((3.0, -1.5, 1.2), (-2.0, -2.5, -0.8)):
+        cam = look_at(eye, fov_y_deg=38, width=size, height=size)
+        light = PointLight(position=torch.tensor(eye) * 1.3 + torch.tensor([0.5, 0.0, 1.0]), intensity=12.0)
+        out.append(render(mesh, cam, [light], model, maps, supersample=2))
+    return torch.stack(out)
+
+
+def test_metallic_roughness_mapping_exact_cases_and_error():
+    a = torch.tensor([[0, 0, 0], [0, 0, 0], [0.6, 0.1, 0.08], [0.3, 0.45, 0.5], [0.5, 0.5, 0.5]], dtype=torch.float64)
+    f = torch.tensor([GOLD, COPPER, (0.04,) * 3, (0.08,) * 3, (0.5,) * 3], dtype=torch.float64)
+    r = E.to_metallic_roughness(a, f, levels=None)
+    # metals: metallic 1, base colour = f0; a 0.04 dielectric: metallic 0, base colour = albedo
+    assert r["metallic"][:2].eq(1).all() and r["metallic"][2].item() == 0
+    torch.testing.assert_close(r["base_color"][:2], f[:2], atol=1e-12, rtol=0)
+    torch.testing.assert_close(r["base_color"][2], a[2], atol=1e-12, rtol=0)
+    # the gem (f0 0.08): a little metallic raises F0 while keeping the diffuse (error 0.0013); the core F0
+    # is off by up to 0.0135 where base colour is dark (red), and the extension makes F0 exact
+    assert 0 < r["metallic"][3].item() < 0.15
+    assert r["diffuse_error"][3].abs().max() < 2e-3 and r["f0_error_core"][3].abs().max() < 0.015
+    assert r["f0_error"].abs().max() < 1e-9
+    # round trip through glTF's definitions
+    back = E.from_metallic_roughness(r["base_color"], r["metallic"], r["specular_f0"])
+    torch.testing.assert_close(back["f0"], f, atol=1e-9, rtol=0)
+    torch.testing.assert_close(back["albedo"] - a, r["diffuse_error"], atol=1e-12, rtol=0)
+    # least squares: no metallic on a fine grid does better (checked by brute force)
+    ms = torch.linspace(0, 1, 4001, dtype=torch.float64)
+    _, cost = E._best_base(a, f, ms.expand(len(a), -1))
+    _, ours = E._best_base(a, f, r["metallic"])
+    assert (ours[:, 0] - cost.min(-1).values).max() < 1e-9
+    with pytest.raises(E.ExportError, match="outside \\[0, 1\\]"):
+        E.to_metallic_roughness(a + 2, f)
+    with pytest.raises(E.ExportError, match="same shape"):
+        E.to_metallic_roughness(a[:2], f)
+    with pytest.raises(E.ExportError, match="levels"):
+        E.to_metallic_roughness(a, f, levels=0)
+
+
+def test_glb_material_renders_like_the_source_maps(tmp_path):
+    maps = _regions()
+    mesh = uv_sphere(segments=48, rings=24)
+    side = E.export_atlas([E.Material("m", maps, mesh)], tmp_path / "a")
+    assert side["size"] == {"width": 64, "height": 64}
+    glb_mesh, back, js = _read_gltf_material(tmp_path / "a" / "atlas.glb", tmp_path)
+    # metals are metallic 1 with base colour = f0 (8-bit sRGB codes)
+    base = E.read_glb(tmp_path / "a" / "atlas.glb")
+    mr = imageio.read_png(tmp_path / "a" / "textures" / "gltf_metallicRoughness.png", transfer="linear")
+    bc = imageio.read_png(tmp_path / "a" / "textures" / "gltf_baseColor.png", transfer="srgb")
+    assert base[0]["materials"][0]["pbrMetallicRoughness"]["metallicFactor"] == 1.0
+    assert torch.all(mr[:, :16, 2] == 1) and torch.all(mr[:, 32:48, 2] == 0)
+    torch.testing.assert_close(bc[:, :16, :3], torch.tensor(GOLD).expand(64, 16, 3), atol=4e-3, rtol=0)
+    # the gem's f0 0.08 needs KHR_materials_specular: with it F0 is exact up to the 8-bit codes
+    assert js["extensionsUsed"] == ["KHR_materials_specular"]
+    torch.testing.assert_close(back["f0"], maps["f0"], atol=6e-3, rtol=0)
+    torch.testing.assert_close(back["albedo"], maps["albedo"], atol=6e-3, rtol=0)
+    torch.testing.assert_close(back["roughness"], maps["roughness"], atol=2.5e-3, rtol=0)
+    # render the GLB (its own geometry, back in our frame) and the source with our renderer
+    ref = _views(mesh, maps)
+    got = _views(glb_mesh, back)
+    obj = ref.sum(-1) > 0
+    psnr = _psnr(got, ref, obj)
+    assert psnr > 52, psnr  # measured 57.8 dB (8-bit textures)
+    # a viewer without the extension: the core alone still gets the metals right (the old metallic-0 form
+    # made gold a black dielectric there)
+    _, core, _ = _read_gltf_material(tmp_path / "a" / "atlas.glb", tmp_path, use_extension=False)
+    core_psnr = _psnr(_views(glb_mesh, core), ref, obj)
+    assert core_psnr > 45, core_psnr  # measured 50.6 dB
+    E.export_atlas([E.Material("m", maps, mesh)], tmp_path / "s", material_model="specular", texture_sets=None)
+    _, old, js_old = _read_gltf_material(tmp_path / "s" / "atlas.glb", tmp_path, use_extension=False)
+    assert js_old["materials"][0]["pbrMetallicRoughness"]["metallicFactor"] == 1.0
+    old_psnr = _psnr(_views(glb_mesh, old), ref, obj)
+    assert old_psnr < core_psnr - 8, (old_psnr, core_psnr)  # measured 37.0 dB
+    assert not (tmp_path / "s" / "textures").exists()
+
+
+def test_glb_is_y_up(tmp_path):
+    mesh = uv_sphere(segments=8, rings=4)
+    top = int(mesh.vertices[:, 2].argmax())  # the +Z pole of the dataset's frame
+    side = E.export_atlas([E.Material("m", _maps(4, 4, 0), mesh)], tmp_path / "a", texture_sets=None)
+    assert side["gltf"]["up_axis"] == "Y"
+    js, blob = E.read_glb(tmp_path / "a" / "atlas.glb")
+    import numpy as np
+
+    prim = js["meshes"][0]["primitives"][0]
+
+    def attr(name):
+        acc = js["accessors"][prim["attributes"][name]]
+        off = js["bufferViews"][acc["bufferView"]]["byteOffset"]
+        return np.frombuffer(blob, np.float32, acc["count"] * 3, off).reshape(-1, 3)
+
+    pos, nrm = attr("POSITION"), attr("NORMAL")
+    np.testing.assert_allclose(pos[top], [0, 1, 0], atol=1e-6)  # +Z → +Y
+    np.testing.assert_allclose(nrm[top], [0, 1, 0], atol=1e-6)
+    v = mesh.vertices.numpy()
+    np.testing.assert_allclose(pos, np.stack([v[:, 0], v[:, 2], -v[:, 1]], 1), atol=1e-6)  # (x, y, z) → (x, z, −y)
+    acc = js["accessors"][prim["attributes"]["POSITION"]]
+    np.testing.assert_allclose(acc["max"], pos.max(0)) and np.testing.assert_allclose(acc["min"], pos.min(0))
+    torch.testing.assert_close(E.yup_to_zup(E.zup_to_yup(mesh.vertices)), mesh.vertices)
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_png_bit_depth_in_glb_and_texture_sets(tmp_path, bits):
+    kw = {} if bits == 8 else {"bits": 16}
+    E.export_atlas([E.Material("m", _regions(16, 16), plane())], tmp_path / "a", **kw)
+    js, blob = E.read_glb(tmp_path / "a" / "atlas.glb")
+    for img in js["images"]:
+        view = js["bufferViews"][img["bufferView"]]
+        data = blob[view["byteOffset"]: view["byteOffset"] + view["byteLength"]]
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[24] == bits  # IHDR bit depth
+    for p in (tmp_path / "a" / "textures").glob("*.png"):
+        assert p.read_bytes()[24] == bits, p.name
+    assert (tmp_path / "a" / "tex1.png").read_bytes()[24] == bits
+    # 16 bits: roughness codes within half a 16-bit code
+    mr = imageio.read_png(tmp_path / "a" / "textures" / "gltf_metallicRoughness.png", transfer="linear")
+    tol = 0.5 / ((1 << bits) - 1) + 1e-7
+    assert (mr[..., 1:2] - _regions(16, 16)["roughness"]).abs().max() <= tol
+
+
+def test_texture_sets_channels_and_tags(tmp_path):
+    import OpenEXR
+
+    maps = _regions(16, 16)
+    maps["mask"] = torch.ones(16, 16, 1)
+    maps["mask"][0, 0] = 0.0
+    maps["coverage"] = torch.ones(16, 16, 1)  # every texel observed: the mask is kept, not filled
+    side = E.export_atlas([E.Material("m", maps, plane())], tmp_path / "a")
+    t = tmp_path / "a" / "textures"
+    assert sorted(p.name for p in t.iterdir()) == [
+        "albedo.exr", "f0.exr", "gltf_baseColor.png", "gltf_metallicRoughness.png", "gltf_specularColor.png",
+        "mask.exr", "roughness.exr", "unity_BaseColorMap.png", "unity_MaskMap.png", "unreal_BaseColor.png",
+        "unreal_ORM.png"]
+    assert side["texture_sets"]["files"]["unreal"]["ORM"] == "unreal_ORM.png"
+    r = maps["roughness"][..., 0]
+    orm = imageio.read_png(t / "unreal_ORM.png", transfer="linear")
+    mask_map = imageio.read_png(t / "unity_MaskMap.png", transfer="linear")
+    q = 0.5 / 255 + 1e-6
+    assert torch.all(orm[..., 0] == 1) and (orm[..., 1] - r).abs().max() <= q
+    assert torch.all(orm[:, :8, 2] == 1) and torch.all(orm[:, 8:12, 2] == 0)  # red plastic: 0; gem: a little
+    assert torch.equal(mask_map[..., 0], orm[..., 2])  # R = metallic
+    assert torch.all(mask_map[..., 1] == 1) and torch.all(mask_map[..., 2] == 1)  # occlusion, detail mask
+    assert (mask_map[..., 3] - (1 - r)).abs().max() <= q  # A = smoothness = 1 − perceptual roughness
+    base = imageio.read_png(t / "unity_BaseColorMap.png", transfer="srgb")
+    assert base[0, 0, 3] == 0 and base[1, 1, 3] == 1  # alpha = mask
+    assert (t / "unreal_BaseColor.png").read_bytes() == (t / "gltf_baseColor.png").read_bytes()
+    torch.testing.assert_close(imageio.read_exr(t / "roughness.exr"), maps["roughness"])
+    torch.testing.assert_close(imageio.read_exr(t / "f0.exr"), maps["f0"])
+    # intent: sRGB chunk on colour, gAMA 1.0 and no sRGB on data; EXRs say Rec. 709 / D65
+    for name, srgb in (("gltf_baseColor.png", True), ("gltf_specularColor.png", True), ("unreal_ORM.png", False),
+                       ("unity_MaskMap.png", False)):
+        chunks = _png_chunks((t / name).read_bytes())
+        assert ("sRGB" in chunks) == srgb, name
+        assert int.from_bytes(chunks["gAMA"], "big") == (45455 if srgb else 100000), name
+    assert int.from_bytes(_png_chunks((tmp_path / "a" / "tex1.png").read_bytes())["gAMA"], "big") == 45455
+    with OpenEXR.File(str(t / "albedo.exr")) as f:
+        xy = f.header()["chromaticities"]
+    assert [round(v, 4) for v in xy] == [0.64, 0.33, 0.3, 0.6, 0.15, 0.06, 0.3127, 0.329]
+    with pytest.raises(E.ExportError, match="unknown texture set"):
+        E.export_atlas([E.Material("m", maps, plane())], tmp_path / "b", texture_sets=["godot"])
+    with pytest.raises(E.ExportError, match="material_model"):
+        E.export_atlas([E.Material("m", maps, plane())], tmp_path / "b", material_model="phong")
+
+
+def test_one_256_material_gives_a_256_atlas(tmp_path):
+    maps = {"albedo": torch.full((256, 256, 3), 0.5), "f0": torch.full((256, 256, 3), 0.04),
+            "roughness": torch.full((256, 256, 1), 0.5)}
+    side = E.export_atlas({"m": maps}, tmp_path / "a", glb=False, texture_sets=None)
+    assert side["size"] == {"width": 256, "height": 256}
+    assert side["materials"][0]["rect"] == {"x": 0, "y": 0, "w": 256, "h": 256}
+    assert imageio.read_png(tmp_path / "a" / "tex1.png").shape == (256, 256, 4)
+    side = E.export_atlas({"m": maps}, tmp_path / "b", glb=False, texture_sets=None, atlas_size="pow2")
+    assert side["size"] == {"width": 256, "height": 256}
+
+
+def test_cli_export_options_and_listing(tmp_path, capsys):
+    from capture.cli import main
+
+    rec = tmp_path / "rec"
+    E.write_maps(_regions(16, 16), rec, previews=False)
+    save_mesh(plane(), rec / "mesh.obj")
+    assert main(["export-atlas", str(rec), "--out", str(tmp_path / "o"), "--bits", "16", "--texture-sets",
+                 "unreal,unity-hdrp", "--material-model", "metallic-roughness"]) == 0
+    out = capsys.readouterr().out
+    assert "atlas.glb" in out and "textures/unreal_ORM.png" in out and "gltf_baseColor" not in out
+    assert (tmp_path / "o" / "atlas.glb").read_bytes()[:4] == b"glTF"
+    assert main(["export-atlas", str(rec), "--out", str(tmp_path / "p"), "--texture-sets", "none",
+                 "--material-model", "specular"]) == 0
+    assert not (tmp_path / "p" / "textures").exists()
+    js, _ = E.read_glb(tmp_path / "p" / "atlas.glb")
+    assert js["materials"][0]["pbrMetallicRoughness"]["metallicFactor"] == 1.0
+    with pytest.raises(SystemExit) as exc:  # argparse: usage and the reason on stderr, status 2
+        main(["export-atlas", str(rec), "--out", str(tmp_path / "q"), "--texture-sets", "godot"])
+    assert exc.value.code == 2 and "unknown texture set(s) ['godot']" in capsys.readouterr().err
