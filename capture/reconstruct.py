@@ -49,7 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from materials import KnownParams
-from materials.roughness import half_max_angle
+from materials.roughness import half_max_angle, roughness_to_alpha
 
 from .observations import Observations, observe_views
 from .solvers import LOSSES, NOISE, FitResult, SolverError, photo_noise_ratio, photo_sigma, solve_adam, solve_fast
@@ -785,8 +785,12 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             sets["well_lit_pixel_sized"] = lit & pixel_sized_texels(fp)
         if "roughness" in ds.gt.maps and tuple(ds.gt.maps["roughness"].shape[:2]) == tuple(obs.map_size):
             sets["well_lit_highlight"] = lit & highlight_texels(obs, ds.gt.maps["roughness"])
+        # roughness also as GGX/Beckmann α = r², the unit most renderers take
+        with_alpha = (lambda d: {**d, "roughness_alpha": roughness_to_alpha(d["roughness"])}
+                      if "roughness" in d else d)
+        fitted_a, truth_a = with_alpha(dict(fit.raw)), with_alpha(dict(ds.gt.maps))
         report.errors["maps_by_texel_set"] = {
-            k: {"texels": int(m.sum()), **{n: e["rmse"] for n, e in map_errors(fit.raw, ds.gt.maps, m).items()}}
+            k: {"texels": int(m.sum()), **{n: e["rmse"] for n, e in map_errors(fitted_a, truth_a, m).items()}}
             for k, m in sets.items()}
         report.errors["observability"] = both
         if known_maps:  # how far the given values are from the truth, over the observed texels

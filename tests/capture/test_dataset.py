@@ -27,7 +27,7 @@ from capture.photo import PhotoModel, quantize_srgb
 from capture.synthetic import build_scene, make_synthetic, small_scene
 from renderer.camera import Camera, look_at
 from renderer.gbuffer import render_gbuffer
-from renderer.imageio import read_exr, read_png, write_exr
+from renderer.imageio import read_exr, read_png, write_exr, write_png
 from renderer.lights import PointLight
 from renderer.mesh import uv_sphere
 from renderer.shading import prepare, shade
@@ -547,3 +547,87 @@ def test_model_written_as_the_project_prints_it_is_read_back():
             model_spec(bad)
     with pytest.raises(ValueError, match="unknown model 'nope'"):
         model_from_spec("lambert+nope(a=1)")
+
+
+# ------------------------------------------------------------------------------------------ masks, JPEG, TIFF
+
+
+def test_write_dataset_masks_round_trip(png_ds, tmp_path):
+    ds = load_dataset(png_ds)
+    imgs = [ds.read_file_image(i) for i in range(len(ds))]
+    masks = [torch.zeros(v.camera.height, v.camera.width, dtype=torch.bool) for v in ds.views]
+    masks[0][:, :10] = True
+    out = write_dataset(tmp_path / "m", ds.mesh, ds.views, imgs, encoding="srgb", masks=[masks[0], None, masks[2]])
+    with pytest.warns(DatasetWarning, match=r"images\[2\]: the mask excludes every pixel"):
+        back = load_dataset(out)
+    assert back.views[0].mask == "masks/000.png" and back.views[1].mask == ""
+    photos = back.load_images()
+    assert torch.equal(photos[0].mask, masks[0]) and bool(photos[1].mask.all()) and not bool(photos[2].mask.any())
+    assert torch.equal(photos[0].unusable, photos[0].saturated | ~masks[0])
+    with pytest.raises(DatasetError, match="masks must hold one entry"):
+        write_dataset(tmp_path / "x", ds.mesh, ds.views, imgs, encoding="srgb", masks=[None])
+
+
+def test_mask_errors_are_named(png_ds, tmp_path):
+    ds = _copy(png_ds, tmp_path)
+    _edit(ds, lambda d: d["images"][1].__setitem__("mask", "masks/001.png"))
+    _raises(ds, "images[1].mask", "does not exist")
+    (ds / "masks").mkdir()
+    write_png(ds / "masks" / "001.png", torch.ones(8, 8), transfer="linear")
+    _raises(ds, "001.png", "mask is 8×8")
+    write_png(ds / "masks" / "001.png", torch.zeros(40, 40), transfer="linear")
+    with pytest.warns(DatasetWarning, match="excludes every pixel"):
+        load_dataset(ds)
+
+
+def test_rgba_png_alpha_is_the_mask(png_ds, tmp_path):
+    ds = _copy(png_ds, tmp_path)
+    img = read_png(ds / "images" / "000.png")
+    alpha = torch.zeros(40, 40, 1)
+    alpha[20:] = 1.0
+    write_png(ds / "images" / "000.png", torch.cat([img, alpha], -1))
+    photos = load_dataset(ds).load_images()
+    assert torch.equal(photos[0].mask, alpha[..., 0] > 0.5)
+    assert torch.allclose(photos[0].radiance * 1.5, img, atol=1e-6)
+
+
+def test_jpeg_warns_and_16bit_tiff_reads(png_ds, tmp_path):
+    import cv2
+
+    ds = _copy(png_ds, tmp_path)
+    codes = cv2.imread(str(ds / "images" / "000.png"), cv2.IMREAD_UNCHANGED)
+    (ds / "images" / "000.png").unlink()
+    cv2.imwrite(str(ds / "images" / "000.jpg"), codes, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    _edit(ds, lambda d: d["images"][0].__setitem__("file", "images/000.jpg"))
+    with pytest.warns(DatasetWarning, match="JPEG.*not pure sRGB"):
+        loaded = load_dataset(ds)
+    assert (loaded.read_file_image(0) - read_png(png_ds / "images" / "000.png")).abs().mean() < 0.01
+    _edit(ds, lambda d: d.__setitem__("bits", 16))
+    with pytest.warns(DatasetWarning, match="JPEG"):
+        _raises(ds, "000.jpg", "JPEG has 8-bit samples", "bits = 16")
+    # 16-bit TIFF holding linear values
+    lin = tmp_path / "lin"
+    shutil.copytree(png_ds, lin)
+    for i in range(3):
+        img = read_png(lin / "images" / f"{i:03d}.png")
+        (lin / "images" / f"{i:03d}.png").unlink()
+        cv2.imwrite(str(lin / "images" / f"{i:03d}.tif"), np.rint(img.numpy() * 65535).astype(np.uint16)[:, :, ::-1])
+    _edit(lin, lambda d: (d.__setitem__("encoding", "linear"), d.__setitem__("saturation", 1.0), d.pop("bits"),
+                          [e.__setitem__("file", e["file"].replace(".png", ".tif")) for e in d["images"]]))
+    back = load_dataset(lin)
+    assert (back.read_file_image(1) - read_png(png_ds / "images" / "001.png")).abs().max() <= 0.5 / 65535 + 1e-7
+    cv2.imwrite(str(lin / "images" / "001.tif"), np.zeros((40, 40, 3), np.uint8))
+    _raises(lin, "001.tif", "8-bit samples, too coarse for linear")
+
+
+def test_light_in_the_camera_frame_resolved_at_load(exr_ds, tmp_path):
+    ds = _copy(exr_ds, tmp_path)
+    base = load_dataset(ds)
+    cam = base.views[0].camera.to(torch.float64)
+    world = base.views[0].lights[0].position.double().reshape(3)
+    p_cam = (cam.R @ world + cam.t).tolist()
+    _edit(ds, lambda d: d["images"][0]["lights"][0].update({"frame": "camera", "position": p_cam}))
+    got = load_dataset(ds).views[0].lights[0].position.double().reshape(3)
+    assert torch.allclose(got, world, atol=1e-5)
+    _edit(ds, lambda d: d["images"][0]["lights"][0].update({"frame": "sensor"}))
+    _raises(ds, "images[0].lights[0]", "'frame' must be one of")
