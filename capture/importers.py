@@ -864,7 +864,8 @@ def _write(shots: list[_Shot], out, options: ImportOptions, overwrite: bool, sou
                                      f"its camera is "
                                f"{s.camera.width}×{s.camera.height}; give the photos the cameras were computed from "
                                "(not resized copies)")
-        photos.append((arr, bits))
+        photos.append((arr.shape[2], bits))  # only what the checks need: the pixels are read again to write
+        del arr
     encs = {(_encoding_of(s.image, b, options.encoding), b) for s, (_, b) in zip(shots, photos, strict=True)}
     if len({e for e, _ in encs}) > 1 or len(encs) > 1:
         raise CaptureImportError(f"the photos mix sample types / encodings {sorted(encs, key=str)}; a dataset has one: "
@@ -879,12 +880,17 @@ def _write(shots: list[_Shot], out, options: ImportOptions, overwrite: bool, sou
     has_dist = [s.dist is not None and bool(np.any(s.dist != 0)) for s in shots]
     undistort = options.undistort and any(has_dist)
     msgs: list[str] = []
+    jpegs = [s.image.name for s in shots if s.image.suffix.lower() in (".jpg", ".jpeg")]
+    if undistort and jpegs:  # written as PNG: the loader cannot tell any more, so say it here
+        msgs.append(f"{len(jpegs)} photo(s) were JPEG ({', '.join(jpegs[:3])}{' ...' if len(jpegs) > 3 else ''}): a "
+                    "camera's JPEG is not pure sRGB, so the recovered albedo is approximate (docs/importing.md)")
+        warnings.warn(DatasetWarning(msgs[-1]), stacklevel=3)
     if any(has_dist) and not options.undistort:
         msgs.append(f"{sum(has_dist)} photo(s) have lens distortion coefficients, ignored (undistort=False): the "
                     "photos are taken as already undistorted")
         warnings.warn(DatasetWarning(msgs[-1]), stacklevel=3)
-    if options.masks == "alpha" and any(a.shape[2] not in (2, 4) for a, _ in photos):
-        bad = next(s.image for s, (a, _) in zip(shots, photos, strict=True) if a.shape[2] not in (2, 4))
+    if options.masks == "alpha" and any(c not in (2, 4) for c, _ in photos):
+        bad = next(s.image for s, (c, _) in zip(shots, photos, strict=True) if c not in (2, 4))
         raise CaptureImportError(f"{bad}: has no alpha channel, but masks = 'alpha'; write the photos as RGBA "
                                  f"PNG or give "
                            "a mask folder")
@@ -905,8 +911,9 @@ def _write(shots: list[_Shot], out, options: ImportOptions, overwrite: bool, sou
         save_mesh(mesh, tmp / "mesh.obj")
         entries, n_masks = [], 0
         out_bits = 16 if (undistort and encoding == "srgb") else bits
-        for i, (s, (arr, b)) in enumerate(zip(shots, photos, strict=True)):
-            mask = _mask_for(s, options, arr.shape[:2], s.where)
+        for i, (s, (_, b)) in enumerate(zip(shots, photos, strict=True)):
+            arr = _read_photo(s.image, s.where)[0] if undistort else None
+            mask = _mask_for(s, options, (s.camera.height, s.camera.width), s.where)
             if undistort:
                 m1, m2 = _undistort_maps(s.camera, s.dist if s.dist is not None else np.zeros(4))
                 x = arr.astype(np.float32)
