@@ -17,7 +17,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Mapping
 
-__all__ = ["Progress", "ProgressError", "RECONSTRUCT_STAGES", "TICK_FRACTION"]
+__all__ = ["Progress", "ProgressError", "RECONSTRUCT_STAGES", "TICK_FRACTION", "DELAY_S"]
 
 #: Stage → weight (its expected share of a reconstruction's time, in percent of a typical run: the default scene,
 #: 16 views of 256², 256² maps, GGX + Lambert — G-buffers and footprints a few seconds, the solve most of the rest;
@@ -27,6 +27,8 @@ RECONSTRUCT_STAGES = {"load": 2.0, "gbuffer": 8.0, "observe": 5.0, "footprints":
 
 #: Within a stage, each tick moves the bar this fraction of the stage's remaining share.
 TICK_FRACTION = 0.1
+#: The bar shows only once a job has run this long (seconds).
+DELAY_S = 0.5
 
 
 class ProgressError(ValueError):
@@ -42,13 +44,14 @@ class Progress:
         desc: the bar's label.
         total: the bar's length in units (default 100: percent).
         file: where the bar is written (default ``sys.stderr``).
+        delay: seconds before the bar first shows (default :data:`DELAY_S`).
 
     Attributes:
         position: where the bar stands, in ``[0, total]``; stage: the current stage (None before the first).
     """
 
     def __init__(self, stages: Mapping[str, float], *, enabled: bool = True, desc: str = "reconstruct",
-                 total: float = 100.0, file=None):
+                 total: float = 100.0, file=None, delay: float | None = None):
         if not isinstance(stages, Mapping) or not stages:
             raise ProgressError(f"stages must be a non-empty mapping name → weight, got {stages!r}")
         bad = {k: w for k, w in stages.items()
@@ -72,10 +75,12 @@ class Progress:
         self.note = ""
         self.desc = desc
         self._bar = None
+        delay = DELAY_S if delay is None else delay
         if enabled:
             from tqdm import tqdm
 
-            self._bar = tqdm(total=self.total, desc=desc, unit="%", file=file or sys.stderr, leave=False,
+            # shown after DELAY_S only: a job that fails on its input at once prints its error alone
+            self._bar = tqdm(total=self.total, desc=desc, unit="%", file=file or sys.stderr, leave=False, delay=delay,
                              bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed} elapsed, ETA {remaining}")
 
     def _start_of(self, name: str) -> float:
@@ -90,8 +95,9 @@ class Progress:
 
     def _show(self) -> None:
         if self._bar is not None:
+            # drawn with the next move (a forced refresh would show the bar before its delay)
             self._bar.set_description_str(f"{self.desc} [{self.stage}{' ' + self.note if self.note else ''}]",
-                                          refresh=True)
+                                          refresh=False)
 
     def start(self, name: str, note: str = "") -> None:
         """Enter stage ``name``: the stages before it count as done (also those the run skipped). Entering the

@@ -394,6 +394,21 @@ def unresolved_roughness(obs: Observations, roughness: Tensor, mask: Tensor, nei
     return float(unresolved[m].float().mean()), float(r[m].median())
 
 
+def _stages(model: str, solver: str, footprint: bool, sampling: str | None) -> dict[str, float]:
+    """The progress bar's stages of a run (:data:`capture.progress.RECONSTRUCT_STAGES`, weighted by their expected
+    cost), less those it skips: auto's trial fits for a named model, footprints, sharing and the joint refinement
+    where the solver does not run them."""
+    import materials
+
+    from .progress import RECONSTRUCT_STAGES
+
+    auto = model == "auto" and sum(m in materials.available() for m in AUTO_CANDIDATES) > 1
+    fits_footprints = footprint and solver == "fast" and sampling in (None, "bilinear")
+    return {k: w for k, w in RECONSTRUCT_STAGES.items()
+            if (k != "select" or auto) and (k != "footprints" or fits_footprints)
+            and (k not in ("sharing", "joint") or solver == "fast")}
+
+
 def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool = False, solver: str = "fast",
                 loss: str = "l2", texture_size: int | None = None, dtype: torch.dtype = torch.float32,
                 progress: bool = True, auto_gain: float = 0.05, auto_chi2: float = AUTO_EXPLAINED_CHI2,
@@ -412,7 +427,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         texture_size: size T of the recovered T×T maps (default: the ground truth's, else 256).
         dtype: dtype of the model evaluations (float32 default; float64 for precision studies).
         progress: show one bar over the whole job with its stage, the live loss and an ETA
-            (:mod:`capture.progress`); False shows nothing.
+            (:mod:`capture.progress`; a :class:`capture.progress.Progress` is used as given); False shows nothing.
         auto_gain: ``model="auto"`` stops when the held-out mean absolute error drops by less than this
             fraction.
         auto_chi2: ``model="auto"`` also stops once a candidate explains its training photos within their noise: its
@@ -473,6 +488,13 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             return reconstruct(**{**args, "threads": None}, **options)
         finally:
             torch.set_num_threads(old)
+    from .progress import Progress
+
+    if progress is True:
+        # one bar over the whole job, removed however the job ends (an error's message then stands alone)
+        with Progress(_stages(model, solver, footprint, sampling)) as bar:
+            args = {k: v for k, v in locals().items() if k in _RECONSTRUCT_ARGS}
+            return reconstruct(**{**args, "progress": bar}, **options)
     from capture.dataset import load_dataset
     from renderer.gbuffer import render_gbuffer
     from renderer.shading import prepare
@@ -511,13 +533,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                                       f"their parameters are {sorted(params)}")
     for c in candidates:
         _model(c, known)  # unknown names and bad known values fail before any work
-    from .progress import RECONSTRUCT_STAGES, Progress
-
-    # one bar over the whole job, stages weighted by their expected cost; the stages this run skips are left out
-    fits_footprints = footprint and solver == "fast" and sampling in (None, "bilinear")
-    prog = Progress({k: w for k, w in RECONSTRUCT_STAGES.items()
-                     if (k != "select" or len(candidates) > 1) and (k != "footprints" or fits_footprints)
-                     and (k not in ("sharing", "joint") or solver == "fast")}, enabled=progress)
+    prog = progress if isinstance(progress, Progress) else Progress(_stages(model, solver, footprint, sampling),
+                                                                    enabled=False)
     prog.start("load")
     ds = load_dataset(dataset_path)
     held_views = _check_holdout(holdout, len(ds.views))
@@ -598,7 +615,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         # the solver's steps: its per-texel LM stages (the schedule's names), "share", "joint", "adam"
         if prog.stage != "select":
             prog.start({"share": "sharing", "joint": "joint"}.get(stage, "solve"))
-        prog.tick(f"{stage} loss {cost:.3e}")
+        prog.tick(f"{'' if stage in ('share', 'joint', 'adam') else stage + ' '}loss {cost:.3e}")
 
     # -- model selection --------------------------------------------------------------------------
     t = time.perf_counter()

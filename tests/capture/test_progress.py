@@ -10,7 +10,7 @@ from capture.progress import Progress, ProgressError
 
 def test_stages_advance_monotonically_to_the_total():
     out = io.StringIO()
-    p = Progress({"a": 1.0, "b": 3.0, "c": 1.0}, file=out, total=100)
+    p = Progress({"a": 1.0, "b": 3.0, "c": 1.0}, file=out, total=100, delay=0)
     seen = [p.position]
     p.start("a")
     for _ in range(50):                      # many ticks of unknown count never leave the stage's share (20 %)
