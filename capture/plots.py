@@ -225,8 +225,12 @@ def relative_error(photo: Tensor, render: Tensor, mask: Tensor, floor: float = 0
     :data:`TONE_PERCENTILE` percentile of Σ_c photo) — relative to the photo, with a floor so that dark pixels do
     not blow up. NaN outside ``mask`` and where the photo is not finite (no prediction to judge)."""
     photo = _image(photo, "photo").double()
+    if photo.dim() != 3 or photo.shape[-1] != 3:
+        raise PlotError(f"photo must be [H, W, 3], got {tuple(photo.shape)}")
     render = _image(render, "render", photo.shape).double()
     mask = _image(mask, "mask", photo.shape[:2]).bool()
+    if isinstance(floor, bool) or not isinstance(floor, (int, float)) or not floor > 0:
+        raise PlotError(f"floor must be a number > 0, got {floor!r}")
     ok = mask & torch.isfinite(photo).all(-1)
     s = photo.nan_to_num(nan=0.0, posinf=0.0, neginf=0.0).sum(-1)
     pos = s[ok & (s > 0)]
@@ -234,6 +238,12 @@ def relative_error(photo: Tensor, render: Tensor, mask: Tensor, floor: float = 0
     den = s.clamp_min(floor * ref if ref > 0 else 1e-30)
     err = (render - photo.nan_to_num(nan=0.0, posinf=0.0, neginf=0.0)).abs().sum(-1) / den
     return torch.where(ok, err, torch.full_like(err, float("nan"))).float()
+
+
+def _check_range(lo, hi) -> None:
+    ok = all(not isinstance(x, bool) and isinstance(x, (int, float)) and 0 < x < math.inf for x in (lo, hi))
+    if not ok or not lo < hi:
+        raise PlotError(f"the colour scale needs 0 < lo < hi (a log scale), got lo={lo!r}, hi={hi!r}")
 
 
 def _log_colours(values: Tensor, cmap: str, lo: float, hi: float) -> Tensor:
@@ -250,6 +260,7 @@ def _log_colours(values: Tensor, cmap: str, lo: float, hi: float) -> Tensor:
 def error_colours(rel: Tensor, lo: float = ERROR_RANGE[0], hi: float = ERROR_RANGE[1]) -> Tensor:
     """``[H, W, 3]`` display colours of a :func:`relative_error` image: :data:`ERROR_CMAP` on a log scale over
     ``[lo, hi]``, :data:`NO_PREDICTION_RGB` where it is NaN."""
+    _check_range(lo, hi)
     rgb = _log_colours(_image(rel, "rel"), ERROR_CMAP, lo, hi)
     return torch.where(torch.isnan(rgb), torch.tensor(NO_PREDICTION_RGB), rgb)
 
@@ -265,6 +276,11 @@ _PANEL_W, _GAP, _TITLE, _HEADER, _FOOTER, _LEFT, _CBAR_AREA = 2.6, 0.12, 0.3, 0.
 def views_page_size(rows: int, image_size: tuple[int, int]) -> tuple[int, int]:
     """Pixel size ``(height, width)`` of a :func:`plot_views` page of ``rows`` views whose largest image is
     ``image_size = (H, W)`` pixels."""
+    if isinstance(rows, bool) or not isinstance(rows, int) or rows < 1:
+        raise PlotError(f"rows must be a positive integer, got {rows!r}")
+    if not (isinstance(image_size, (tuple, list)) and len(image_size) == 2
+            and all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in image_size)):
+        raise PlotError(f"image_size must be (H, W), two positive integers, got {image_size!r}")
     fw, fh, _ = _views_layout(rows, image_size)
     return round(fh * DPI), round(fw * DPI)
 
@@ -387,6 +403,12 @@ def confidence_colours(std: Tensor, unobservable: Tensor, lo: float, hi: float) 
     """``[H, W, 3]`` display colours of a confidence map: the posterior std (``[H, W]``; NaN = no sample) in
     :data:`CONFIDENCE_CMAP` on a log scale over ``[lo, hi]``, :data:`UNOBSERVABLE_RGB` (grey) where ``unobservable``,
     :data:`NO_SAMPLE_RGB` (black) where NaN."""
+    _check_range(lo, hi)
+    std = _image(std, "std")
+    unobservable = _image(unobservable, "unobservable", std.shape)
+    if std.dim() != 2 or unobservable.dtype != torch.bool:
+        raise PlotError(f"std must be [H, W] and unobservable an [H, W] bool mask, got {tuple(std.shape)} and "
+                        f"{unobservable.dtype}")
     rgb = _log_colours(std, CONFIDENCE_CMAP, lo, hi)
     rgb = torch.where(unobservable[..., None], torch.tensor(UNOBSERVABLE_RGB), rgb)
     return torch.where(torch.isnan(rgb), torch.tensor(NO_SAMPLE_RGB), rgb)

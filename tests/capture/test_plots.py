@@ -137,3 +137,20 @@ def test_bad_figure_input_is_named(tmp_path):
     with pytest.raises(PlotError, match=r"\.png"):
         plot_confidence(tmp_path / "c.jpg", torch.zeros(4, 4), torch.zeros(4, 4, dtype=torch.bool), "albedo")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_colour_scales_and_sizes_are_named():
+    from capture.plots import confidence_colours
+
+    with pytest.raises(PlotError, match="0 < lo < hi"):
+        error_colours(torch.zeros(2, 2), 0.0, 1.0)
+    with pytest.raises(PlotError, match="0 < lo < hi"):
+        confidence_colours(torch.zeros(2, 2), torch.zeros(2, 2, dtype=torch.bool), 1.0, 0.5)
+    with pytest.raises(PlotError, match="bool mask"):
+        confidence_colours(torch.zeros(2, 2), torch.zeros(2, 2), 0.1, 1.0)
+    with pytest.raises(PlotError, match="photo must be"):
+        relative_error(torch.zeros(2, 2), torch.zeros(2, 2), torch.ones(2, 2, dtype=torch.bool))
+    with pytest.raises(PlotError, match="rows must be"):
+        views_page_size(0, (48, 64))
+    with pytest.raises(PlotError, match="image_size"):
+        views_page_size(2, (48,))
