@@ -4,21 +4,15 @@ Each importer reads the cameras of one tool, maps its conventions onto shadecap'
 centres at integer coordinates, world-to-camera ``R``, ``t``; ``docs/conventions.md``), and writes a dataset
 folder (``docs/dataset-format.md``) with the mesh, the photos, optional masks and the lights:
 
-==================  ==========================================================================================
-importer            what it maps
-==================  ==========================================================================================
-:func:`import_colmap`           ``cameras.txt``/``images.txt`` or ``cameras.bin``/``images.bin``: quaternion
-                                (w, x, y, z) and t are world-to-camera in the OpenCV frame already; COLMAP's
-                                image coordinates put the centre of the top-left pixel at (0.5, 0.5), so
-                                cx, cy − ½
-:func:`import_transforms_json`  NeRF / instant-ngp / nerfstudio: ``transform_matrix`` is camera-to-world in
-                                the OpenGL camera frame (x right, y up, looking down −z) → flip y, z and
-                                invert; ``camera_angle_x`` or ``fl_x``/``fl_y``/``cx``/``cy`` (cx, cy in
-                                the same corner-origin convention as COLMAP → − ½; default the image centre)
-:func:`import_opencv_yaml`      ``cv2.FileStorage`` YAML/XML: ``camera_matrix``/``K``,
-                                ``distortion_coefficients``/``D``, per image ``R``/``t`` or ``rvec``/``tvec``
-                                (world-to-camera, as ``solvePnP`` gives them); conventions already ours
-==================  ==========================================================================================
+- :func:`import_colmap` — ``cameras.txt``/``images.txt`` or ``cameras.bin``/``images.bin``: the quaternion
+  (w, x, y, z) and t are world-to-camera in the OpenCV frame already; COLMAP's image coordinates put the centre
+  of the top-left pixel at (0.5, 0.5), so cx, cy − ½.
+- :func:`import_transforms_json` — NeRF / instant-ngp / nerfstudio: ``transform_matrix`` is camera-to-world in
+  the OpenGL camera frame (x right, y up, looking down −z) → flip y and z, invert; ``camera_angle_x`` or
+  ``fl_x``/``fl_y``/``cx``/``cy`` (cx, cy in COLMAP's corner-origin convention → − ½; default the image centre).
+- :func:`import_opencv_yaml` — ``cv2.FileStorage`` YAML/XML: ``camera_matrix``/``K``,
+  ``distortion_coefficients``/``D``, per image ``R``/``t`` or ``rvec``/``tvec`` (world-to-camera, as
+  ``solvePnP`` gives them); the conventions are already shadecap's.
 
 The choices every importer shares are one :class:`ImportOptions`: the mesh (and ``unwrap`` to give a mesh
 without UVs an xatlas atlas), the photo folder, masks (a folder of mask images or the photos' alpha channel), a
@@ -973,7 +967,14 @@ def _write(shots: list[_Shot], out, options: ImportOptions, overwrite: bool, sou
         (tmp / SCENE_FILE).write_text(_dumps(jsonable(doc)) + "\n", encoding="utf-8")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", DatasetWarning)
-            load_dataset(tmp)
+            try:
+                load_dataset(tmp)
+            except CaptureImportError:
+                raise
+            except DatasetError as exc:
+                hint = ("; the mesh must be in the cameras' world frame and unit (the tool's own mesh, or one aligned "
+                        "to its cameras)") if "does not see the mesh" in str(exc) else ""
+                raise CaptureImportError(f"{exc}{hint} (nothing was written to {out})") from None
         msgs += [str(w.message).replace(str(tmp), str(out)) for w in caught
                  if issubclass(w.category, DatasetWarning)]
     return ImportResult(out, source, len(shots), encoding, out_bits if encoding == "srgb" else bits,

@@ -480,3 +480,66 @@ def test_lights_option_in_the_camera_frame_equals_the_flash(scene, tmp_path):
         assert torch.allclose(view.lights[0].position.double().reshape(3), want, atol=1e-5)
     with pytest.raises(CaptureImportError, match=r"lights\[0\].*sh.*camera frame"):
         ImportOptions(mesh=scene["mesh"], lights=[{"type": "sh", "frame": "camera", "coeffs": [[0.0] * 3] * 9}])
+
+
+def _wall_scene_photos(scene):
+    """The renders in front of a smooth textured wall: content up to the image corners."""
+    xs, ys = np.meshgrid(np.arange(SIZE), np.arange(SIZE))
+    wall = torch.from_numpy(0.3 + 0.2 * np.sin(2 * np.pi * xs / 16) * np.sin(2 * np.pi * ys / 14)).float()[..., None]
+    return [torch.where(img.sum(-1, keepdim=True) > 0, img, wall.expand(SIZE, SIZE, 3)) for img in scene["images"]]
+
+
+def _tree(folder: Path) -> dict:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("source", ["colmap", "transforms"])
+def test_distorted_srgb_photos_undistort_to_16bit_png(scene, tmp_path, source):
+    """COLMAP OPENCV cameras and transforms.json k1/k2 with 8-bit sRGB photos: written back as 16-bit sRGB PNG."""
+    cams = _cams(scene)
+    K = cams[0].K.double().numpy()
+    dist = [-0.2, 0.05, 0.001, -0.0005]
+    truth = _wall_scene_photos(scene)
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    names = []
+    for i, img in enumerate(truth):
+        names.append(f"p{i}.png")
+        write_png(cap / names[-1], torch.from_numpy(_distort(img.numpy(), K, np.array(dist + [0.0]))))
+    if source == "colmap":
+        write_colmap_text(cap / "model", cams, names, dist=dist)
+        (cap / "masks").mkdir()
+        for n in names:  # everything usable but the top rows
+            m = np.full((SIZE, SIZE), 255, np.uint8)
+            m[:4] = 0
+            cv2.imwrite(str(cap / "masks" / (n + ".png")), m)
+        opts = ImportOptions(mesh=scene["mesh"], images=cap, masks=cap / "masks", flash=_flash(scene))
+    else:
+        write_transforms(cap / "transforms.json", cams, names, dist=dist)
+        opts = ImportOptions(mesh=scene["mesh"], flash=_flash(scene))
+    before = _tree(cap)
+    fn = import_colmap if source == "colmap" else import_transforms_json
+    res = fn(cap / "model" if source == "colmap" else cap / "transforms.json", tmp_path / "ds", opts)
+    assert _tree(cap) == before  # the inputs are never modified
+    assert res.undistorted == 3 and res.encoding == "srgb" and res.bits == 16
+    ds = load_dataset(tmp_path / "ds")
+    assert ds.bits == 16 and ds.saturation == 65535 and ds.views[0].file.endswith(".png")
+    _assert_same_cameras(ds, scene)
+    for p, want in zip(ds.load_images(), truth, strict=True):
+        if source == "colmap":
+            assert not p.mask[:3].any()  # the user's mask, undistorted with it
+        err = (p.radiance - want)[p.mask].abs().mean()
+        assert err < 0.006, err  # 8-bit quantisation and two interpolations
+
+
+def test_a_failed_import_leaves_nothing(scene, tmp_path):
+    names = _write_photos(scene, tmp_path / "images", "png")
+    cams = _cams(scene)
+    away = Camera(cams[1].K, cams[1].R, cams[1].t + torch.tensor([0.0, 0.0, -20.0], dtype=torch.float64),
+                  SIZE, SIZE, dtype=torch.float64)  # the object behind this camera
+    write_colmap_binary(tmp_path / "m", [cams[0], away, cams[2]], names)
+    with pytest.raises(CaptureImportError, match=r"images\[1\]\.camera.*does not see the mesh"):
+        import_colmap(tmp_path / "m", tmp_path / "ds", ImportOptions(mesh=scene["mesh"], images=tmp_path / "images",
+                                                                        flash=_flash(scene)))
+    assert not (tmp_path / "ds").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".ds")]
