@@ -738,7 +738,7 @@ def unwrap_mesh(path) -> Mesh:
     """
     try:
         import xatlas
-    except ModuleNotFoundError:
+    except ImportError:
         raise CaptureImportError("unwrapping a mesh needs the optional package xatlas: pip install xatlas (or "
                                  "pip install "
                            "'shadecap[unwrap]'), or unwrap it yourself (Blender: UV > Smart UV Project)") from None

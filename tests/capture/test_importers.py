@@ -5,6 +5,7 @@ import dataclasses
 import json
 import math
 import struct
+import sys
 import warnings
 from pathlib import Path
 
@@ -416,13 +417,17 @@ def _obj_without_uvs(mesh, path: Path):
     path.write_text("\n".join(lines))
 
 
-def test_mesh_without_uvs_needs_unwrap(scene, tmp_path):
+def test_mesh_without_uvs_needs_unwrap(scene, tmp_path, monkeypatch):
     names = _write_photos(scene, tmp_path / "images", "png")
     write_colmap_text(tmp_path / "m", _cams(scene), names)
     _obj_without_uvs(scene["scene"].mesh, tmp_path / "bare.obj")
     opts = ImportOptions(mesh=tmp_path / "bare.obj", images=tmp_path / "images", flash=_flash(scene))
     with pytest.raises(CaptureImportError, match="--unwrap"):
         import_colmap(tmp_path / "m", tmp_path / "ds", opts)
+    with monkeypatch.context() as mp:  # xatlas missing: the message says how to install it
+        mp.setitem(sys.modules, "xatlas", None)
+        with pytest.raises(CaptureImportError, match="pip install xatlas"):
+            import_colmap(tmp_path / "m", tmp_path / "ds", dataclasses.replace(opts, unwrap=True))
     pytest.importorskip("xatlas")
     res = import_colmap(tmp_path / "m", tmp_path / "ds", dataclasses.replace(opts, unwrap=True))
     assert res.unwrapped
