@@ -539,6 +539,11 @@ def import_transforms_json(path, out, options: ImportOptions, *, overwrite: bool
     if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list) or not doc["frames"]:
         raise CaptureImportError(f"{path}: field 'frames' must be a non-empty list of frames "
                            "({'file_path': ..., 'transform_matrix': [[...]]})")
+    if "applied_transform" in doc:
+        warnings.warn(DatasetWarning(
+            f"{path}: has 'applied_transform' (nerfstudio's world differs from the COLMAP model it came from): the "
+            "mesh must be in the frame of transform_matrix; a mesh in COLMAP's frame needs that transform applied, or "
+            "import the COLMAP model itself (shadecap import colmap)"), stacklevel=2)
     base = options.images or path.parent
     shots = []
     for k, fr in enumerate(doc["frames"]):
