@@ -196,6 +196,18 @@ def _cmd_export(args) -> int:
     return 0
 
 
+def _atlas_size(text: str) -> int | str:
+    if text.strip().lower() == "pow2":
+        return "pow2"
+    try:
+        size = int(text)
+    except ValueError:
+        size = 0
+    if size <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of texels or 'pow2', got {text!r}")
+    return size
+
+
 def _texture_sets(text: str) -> tuple[str, ...]:
     from capture.export import TEXTURE_SETS
 
@@ -213,8 +225,8 @@ def _texture_sets(text: str) -> tuple[str, ...]:
 
 def _add_export_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="atlas folder to create")
-    p.add_argument("--size", type=int, default=None, help="square atlas size in texels (default: the tight size "
-                   "that fits, sides multiples of 4)")
+    p.add_argument("--size", type=_atlas_size, default=None, help="square atlas size in texels, or 'pow2' for the "
+                   "smallest power-of-two square (default: the tight size that fits, sides multiples of 4)")
     p.add_argument("--gutter", type=int, default=4, help="texels between materials (mip-map safety)")
     p.add_argument("--bits", type=int, choices=(8, 16), default=8,
                    help="bits per channel of every PNG: atlas, GLB textures, texture sets (default 8)")

@@ -714,20 +714,19 @@ def tag_png(data: bytes, intent: str) -> bytes:
     return b"".join(out)
 
 
-def _png_bytes(img: Tensor, bits: int = 8, transfer: str = "srgb", intent: str | None = None) -> bytes:
-    """PNG file bytes of a linear image (encoded by ``transfer``), tagged with ``intent`` (default: by transfer)."""
-    fd, tmp = tempfile.mkstemp(suffix=".png")
-    os.close(fd)
-    try:
-        imageio.write_png(tmp, img, bits=bits, transfer=transfer)
-        data = Path(tmp).read_bytes()
-    finally:
-        os.unlink(tmp)
+def _png_bytes(img: Tensor, bits: int = 8, transfer: str = "srgb", intent: str | None = None,
+               name: str = "image.png") -> bytes:
+    """PNG file bytes of a linear image (encoded by ``transfer``), tagged with ``intent`` (default: by transfer).
+    Encoded by :func:`renderer.imageio.write_png` into a private temporary folder, as a file called ``name``."""
+    with tempfile.TemporaryDirectory(prefix="shadecap-png-") as tmp:
+        p = Path(tmp) / name
+        imageio.write_png(p, img, bits=bits, transfer=transfer)
+        data = p.read_bytes()
     return tag_png(data, intent or transfer)
 
 
 def _write_png(path, img: Tensor, bits: int = 8, transfer: str = "srgb", intent: str | None = None) -> None:
-    imageio.atomic_write_bytes(path, _png_bytes(img, bits, transfer, intent))
+    imageio.atomic_write_bytes(path, _png_bytes(img, bits, transfer, intent, Path(path).name))
 
 
 # --------------------------------------------------------------------------------------------

@@ -513,7 +513,8 @@ def test_cli_export_options_and_listing(tmp_path, capsys):
     assert "atlas.glb" in out and "textures/unreal_ORM.png" in out and "gltf_baseColor" not in out
     assert (tmp_path / "o" / "atlas.glb").read_bytes()[:4] == b"glTF"
     assert main(["export-atlas", str(rec), "--out", str(tmp_path / "p"), "--texture-sets", "none",
-                 "--material-model", "specular"]) == 0
+                 "--material-model", "specular", "--size", "pow2"]) == 0
+    assert json.loads((tmp_path / "p" / "atlas.json").read_text())["size"] == {"width": 16, "height": 16}
     assert not (tmp_path / "p" / "textures").exists()
     js, _ = E.read_glb(tmp_path / "p" / "atlas.glb")
     assert js["materials"][0]["pbrMetallicRoughness"]["metallicFactor"] == 1.0
