@@ -626,3 +626,28 @@ def test_blender_cycles_renders_metals_like_the_photo(tmp_path):
     # the metallic-0 + KHR_materials_specular form renders gold and copper dark in Blender
     old = _blender_psnr(tmp_path, maps, "specular")
     assert max(old) < 30, old  # measured 22.9 and 20.2 dB
+
+
+def test_gltf_helpers_bad_input(tmp_path):
+    E.export_atlas([E.Material("m", _maps(4, 4, 0), plane())], tmp_path / "a", texture_sets=None)
+    raw = (tmp_path / "a" / "atlas.glb").read_bytes()
+    (tmp_path / "cut.glb").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(E.ExportError, match=r"cut\.glb: truncated or malformed GLB"):
+        E.read_glb(tmp_path / "cut.glb")
+    with pytest.raises(E.ExportError, match=r"atlas\.json: not a glTF 2\.0 binary"):
+        E.read_glb(tmp_path / "a" / "atlas.json")
+    with pytest.raises(E.ExportError, match="not a PNG"):
+        E.tag_png(b"GIF89a" + bytes(40), "srgb")
+    with pytest.raises(E.ExportError, match="intent"):
+        E.tag_png((tmp_path / "a" / "tex1.png").read_bytes(), "p3")
+    with pytest.raises(E.ExportError, match=r"\[\.\.\., 3\]"):
+        E.zup_to_yup(torch.zeros(4, 2))
+    with pytest.raises(E.ExportError, match="metallic must be a tensor"):
+        E.from_metallic_roughness(torch.zeros(4, 3), torch.zeros(5, 1))
+    with pytest.raises(E.ExportError, match="unknown texture set"):
+        E.write_texture_sets(tmp_path / "t", _maps(4, 4, 0), ["godot"])
+    with pytest.raises(E.ExportError, match=r"needs maps \['roughness'\]"):
+        E.gltf_textures({"albedo": torch.zeros(2, 2, 3), "f0": torch.zeros(2, 2, 3)})
+    with pytest.raises(E.ExportError, match="no meshes"):
+        E.write_glb(tmp_path / "x.glb", [], _maps(4, 4, 0))
+    assert not (tmp_path / "t").exists() and not (tmp_path / "x.glb").exists()
