@@ -72,7 +72,7 @@ IMAGE_DIR = "images"
 MASK_DIR = "masks"
 GT_DIR = "gt"
 _IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg", ".tif", ".tiff")
-_TOP_KEYS = {"format", "version", "mesh", "encoding", "bits", "saturation", "images", "gt", "meta"}
+_TOP_KEYS = {"format", "version", "mesh", "encoding", "bits", "saturation", "psf_sigma", "images", "gt", "meta"}
 _VIEW_KEYS = {"file", "camera", "lights", "exposure", "name", "mask"}
 _GT_KEYS = {"model", "maps", "regions", "render", "photo"}
 #: Exposures are accepted strictly inside this range: beyond it, pixel / exposure leaves float32's range.
@@ -324,6 +324,8 @@ class Dataset:
         gt: ground truth of a synthetic dataset, or None.
         meta: free-form metadata (generator, configuration, highlight coverage ...).
         warnings: the warnings raised while loading (also issued as :class:`DatasetWarning`).
+        psf_sigma: σ (pixels) of the Gaussian blur in the photos' pixel filter (``scene.json`` → ``psf_sigma``;
+            0: the box filter alone).
     """
 
     root: Path
@@ -336,6 +338,7 @@ class Dataset:
     gt: GroundTruth | None = None
     meta: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    psf_sigma: float = 0.0
 
     def __len__(self) -> int:
         return len(self.views)
@@ -817,6 +820,11 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
                        f"{saturation!r}", f"use {top} (the largest code) unless the camera clips lower")
     else:
         saturation = _number(saturation, scene, "saturation", positive=True, allow_none=True)
+    # the photos' pixel filter: the box, convolved with a Gaussian of psf_sigma pixels (lens blur, demosaicing)
+    psf_sigma = _number(doc.get("psf_sigma", 0.0), scene, "psf_sigma", nonneg=True)
+    if psf_sigma > 4:
+        raise _err(scene, "psf_sigma", f"must be a blur σ in pixels in [0, 4], got {psf_sigma!r}",
+                   "measure it from a slanted edge, or leave it out for a sharp camera (box filter)")
 
     # mesh
     mesh_path = _relative_file(root, doc["mesh"], scene, "mesh")
@@ -921,7 +929,8 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
     meta = doc.get("meta", {}) or {}
     if not isinstance(meta, dict):
         raise _err(scene, "meta", f"must be a JSON object, got {type(meta).__name__}")
-    return Dataset(root, mesh, str(Path(doc["mesh"]).as_posix()), views, encoding, bits, saturation, gt, meta, msgs)
+    return Dataset(root, mesh, str(Path(doc["mesh"]).as_posix()), views, encoding, bits, saturation, gt, meta, msgs,
+                   psf_sigma=float(psf_sigma))
 
 
 def _load_gt(root: Path, scene: Path, g, msgs: list[str]) -> GroundTruth:
@@ -1035,6 +1044,7 @@ def write_dataset(
     overwrite: bool = False,
     validate: bool = True,
     masks: Sequence[Tensor | None] | None = None,
+    psf_sigma: float = 0.0,
 ) -> Path:
     """Write a dataset folder atomically and return its path.
 
@@ -1060,6 +1070,7 @@ def write_dataset(
         validate: load the written folder before moving it in place (recommended).
         masks: optional, per view a ``[H, W]`` bool mask (True = the object, usable) or None; each given one is
             written as an 8-bit PNG (255 / 0) at the view's ``mask`` path or ``masks/NNN.png``.
+        psf_sigma: σ (pixels) of a Gaussian blur in the photos' pixel filter, written when > 0.
 
     Raises:
         DatasetError: bad arguments, ``out_dir`` exists, or validation of the written folder failed.
@@ -1077,6 +1088,8 @@ def write_dataset(
     if masks is not None and len(masks) != len(views):
         raise DatasetError(f"write_dataset: masks must hold one entry (a mask or None) per view, got {len(masks)} for "
                            f"{len(views)} views")
+    if isinstance(psf_sigma, bool) or not isinstance(psf_sigma, (int, float)) or not 0 <= psf_sigma <= 4:
+        raise DatasetError(f"write_dataset: psf_sigma must be a blur σ in pixels in [0, 4], got {psf_sigma!r}")
     check_output(out, force=overwrite, error=DatasetError, force_flag="overwrite=True (--overwrite)")
     if encoding == "srgb" and saturation is None:
         saturation = (1 << bits) - 1
@@ -1085,7 +1098,8 @@ def write_dataset(
     try:
         with atomic_folder(out, force=overwrite, error=DatasetError,
                            force_flag="overwrite=True (--overwrite)") as tmp:
-            _write_into(tmp, mesh, views, images, encoding, ext, bits, saturation, half, gt, meta, validate, masks)
+            _write_into(tmp, mesh, views, images, encoding, ext, bits, saturation, half, gt, meta, validate, masks,
+                        psf_sigma)
     except DatasetError as exc:
         raise DatasetError(f"{exc} (nothing was written to {out})" if "nothing was written" not in str(exc)
                            else str(exc)) from None
@@ -1093,7 +1107,7 @@ def write_dataset(
 
 
 def _write_into(tmp: Path, mesh, views, images, encoding, ext, bits, saturation, half, gt, meta, validate,
-                masks=None) -> None:
+                masks=None, psf_sigma: float = 0.0) -> None:
     """Write a dataset's files into the (temporary) folder ``tmp`` and, with ``validate``, load it back."""
     (tmp / IMAGE_DIR).mkdir()
     save_mesh(mesh, tmp / "mesh.obj")
@@ -1143,6 +1157,8 @@ def _write_into(tmp: Path, mesh, views, images, encoding, ext, bits, saturation,
     if encoding == "srgb":
         doc["bits"] = bits
     doc["saturation"] = saturation
+    if psf_sigma:
+        doc["psf_sigma"] = float(psf_sigma)
     doc["images"] = entries
     if gt is not None:
         doc["gt"] = _write_gt(tmp, gt)

@@ -37,6 +37,7 @@ pixel: a sparse pixel × texel operator ``pixel_i = Σ_{s ∈ i} share_s · L(ma
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -89,6 +90,7 @@ class PixelFootprints:
             or saw its back (silhouettes), dropped whole.
         cast_rays: rays cast for the kept and dropped footprints together; uniform_rays: rays a uniform
             :data:`FOOTPRINT_MAX`² per pixel would have cast on the same pixels (the saving of the adaptive count).
+        psf_sigma: σ (pixels) of the Gaussian PSF in the pixel filter (0: the box alone).
     """
 
     samples: Observations
@@ -103,6 +105,7 @@ class PixelFootprints:
     drops: dict
     cast_rays: int = 0
     uniform_rays: int = 0
+    psf_sigma: float = 0.0
 
     @property
     def n_pixels(self) -> int:
@@ -159,7 +162,7 @@ class PixelFootprints:
             radiance=self.radiance[keep], view=self.view[keep], pixel=self.pixel[keep],
             counts=self.counts[keep], noise_residual=self.noise_residual[keep],
             footprint_texels=self.footprint_texels[keep], drops=dict(self.drops), cast_rays=self.cast_rays,
-            uniform_rays=self.uniform_rays)
+            uniform_rays=self.uniform_rays, psf_sigma=self.psf_sigma)
 
 
 def _grad_len(uv: Tensor, hit: Tensor, depth: Tensor, map_size: tuple[int, int]) -> tuple[Tensor, Tensor]:
@@ -208,9 +211,21 @@ def _curvature(photo: Tensor) -> Tensor:
     return c
 
 
+def footprint_max(psf_sigma: float = 0.0) -> int:
+    """Largest k for a pixel filter: :data:`FOOTPRINT_MAX` over the box's square, as many per pixel width over the
+    wider square of a Gaussian PSF (:func:`renderer.gbuffer.footprint_extent`), at most 16."""
+    from renderer.gbuffer import footprint_extent
+
+    return min(16, math.ceil(FOOTPRINT_MAX * footprint_extent(psf_sigma) - 1e-9))
+
+
 def footprint_counts(gbuffer, map_size: tuple[int, int],
-                     photo: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                     photo: Tensor | None = None, psf_sigma: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
     """Per pixel of a pixel-centre G-buffer: which pixels to cast, their sample count ``k`` and texel footprint ``f``.
+
+    With a Gaussian PSF (``psf_sigma`` pixels) the samples cover the filter's wider square
+    (:func:`renderer.gbuffer.footprint_extent`), so both needs are multiplied by its side and the cap is
+    :func:`footprint_max`.
 
     Returns ``(pixels [M], k [M], f [M])`` for the M pixels whose centre ray hits the object, plus the pixels
     next to them (a pixel whose centre misses may still be partly covered; it is cast at :data:`FOOTPRINT_MAX`
@@ -224,14 +239,18 @@ def footprint_counts(gbuffer, map_size: tuple[int, int],
     depth[gbuffer.pixel] = gbuffer.depth.to(torch.float64)
     hit2 = hit.reshape(H, W)
     f, edge = _grad_len(uv.reshape(H, W, 2), hit2, depth.reshape(H, W), map_size)
-    k = torch.ceil(f / FOOTPRINT_SPACING)
+    from renderer.gbuffer import footprint_extent
+
+    extent, kmax = footprint_extent(psf_sigma), footprint_max(psf_sigma)
+    k = torch.ceil(f * extent / FOOTPRINT_SPACING)
     if photo is not None:
-        k = torch.maximum(k, torch.ceil(torch.sqrt(_curvature(photo) / (24.0 * FOOTPRINT_TOLERANCE))))
-    k = k.clamp(1, FOOTPRINT_MAX).long()
-    k = torch.where(edge, torch.full_like(k, FOOTPRINT_MAX), k)
+        k = torch.maximum(k, torch.ceil(extent * torch.sqrt(_curvature(photo) / (24.0 * FOOTPRINT_TOLERANCE))))
+    k = k.clamp(1, kmax).long()
+    k = torch.where(edge, torch.full_like(k, kmax), k)
     # a pixel next to a hit pixel but missing at its centre may be partly covered: cast it too (dropped later as
     # partial) — only so that no partly covered pixel is kept as a full one, which it never is (its own rays miss)
-    near = F.max_pool2d(hit2[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+    reach = 1 + math.ceil((extent - 1.0) / 2.0)       # pixels whose filter square may reach a hit pixel
+    near = F.max_pool2d(hit2[None, None].float(), 2 * reach + 1, stride=1, padding=reach)[0, 0] > 0
     cast = (hit2 | near).reshape(-1)
     kk = torch.where(hit, k.reshape(-1), torch.ones_like(k.reshape(-1)))
     pixels = torch.nonzero(cast).squeeze(-1)
@@ -240,7 +259,8 @@ def footprint_counts(gbuffer, map_size: tuple[int, int],
 
 def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centre_gbuffers: Sequence,
                        photos: Sequence[Tensor], map_size: tuple[int, int], *, lights: Sequence | None = None,
-                       clipped: Sequence[Tensor] | None = None, dtype=None, shadows: bool = True) -> PixelFootprints:
+                       clipped: Sequence[Tensor] | None = None, dtype=None, shadows: bool = True,
+                       psf_sigma: float = 0.0) -> PixelFootprints:
     """The pixel footprints of every view (module docstring).
 
     Args:
@@ -249,6 +269,8 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         photos: per view the linear photo ``[H, W, 3]`` in radiance units (exposure divided out).
         map_size: ``(H, W)`` of the maps. lights: the scene's point/directional lights in order (see
             :func:`capture.observations.observe_views`). clipped: per view ``[H, W]`` saturated-pixel masks.
+        psf_sigma: σ (pixels) of a Gaussian lens/demosaicing blur convolved with the box filter (0: box only;
+            :func:`renderer.gbuffer.render_footprint`).
 
     Raises:
         ObservationError: mismatched lists or no valid pixel in any view.
@@ -262,8 +284,8 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
                                f"view, got {n}, {len(lights_per_view)}, {len(centre_gbuffers)}, {len(photos)}")
     preps, fps, counts, cast, uniform, partial = [], [], [], 0, 0, 0
     for vi in range(n):
-        pixels, k, f = footprint_counts(centre_gbuffers[vi], map_size, photos[vi])
-        g = render_footprint(mesh, cameras[vi], pixels, k)
+        pixels, k, f = footprint_counts(centre_gbuffers[vi], map_size, photos[vi], psf_sigma)
+        g = render_footprint(mesh, cameras[vi], pixels, k, psf_sigma=psf_sigma)
         cast += int((k * k).sum())
         # a pixel is whole when all its rays hit the object facing the camera
         facing = (g.normal * g.view).sum(-1) > 0
@@ -271,7 +293,7 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         covered = torch.zeros(HW, dtype=torch.float64).index_add(0, g.pixel, g.weight.double() * facing.double())
         whole = torch.zeros(HW, dtype=torch.bool)
         whole[pixels] = (covered[pixels] > 1.0 - 1e-6)
-        uniform += int(whole.sum()) * FOOTPRINT_MAX ** 2
+        uniform += int(whole.sum()) * footprint_max(psf_sigma) ** 2
         partial += int((~whole[pixels]).sum()) - int((covered[pixels] == 0).sum())
         g = g.select(whole[g.pixel])
         preps.append(prepare(g, mesh, lights_per_view[vi], shadows=shadows))
@@ -312,10 +334,11 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
     samples.noise_residual = None
     return PixelFootprints(samples=samples, group=group, share=share, radiance=samples.radiance[first].clone(),
                            view=view, pixel=pixel, counts=counts_r, noise_residual=noise, footprint_texels=foot_r,
-                           drops=drops, cast_rays=cast, uniform_rays=uniform)
+                           drops=drops, cast_rays=cast, uniform_rays=uniform, psf_sigma=float(psf_sigma))
 
 
 def saving(fp: PixelFootprints) -> float:
     """Fraction of rays the adaptive count saves against :data:`FOOTPRINT_MAX`² rays on every kept pixel."""
-    return 1.0 - float(fp.counts.sum()) / max(fp.n_pixels * FOOTPRINT_MAX ** 2, 1) if fp.n_pixels else 0.0
+    return 1.0 - float(fp.counts.sum()) / max(fp.n_pixels * footprint_max(fp.psf_sigma) ** 2, 1) if fp.n_pixels \
+        else 0.0
 

@@ -415,7 +415,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                 max_grid_views: int = 8, sampling: str | None = None,
                 threads: int | None = None, known: Mapping[str, object] | None = None,
                 scalars: tuple[str, ...] | list[str] = SCALARS, holdout: Sequence[int] | None = None,
-                footprint: bool = True, **options) -> Report:
+                footprint: bool = True, psf_sigma: float | None = None, **options) -> Report:
     """Recover the material maps of a dataset and write them to ``out_dir`` (see module docstring).
 
     Args:
@@ -441,6 +441,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         footprint: fit the photos' pixels as area averages over their footprints (:mod:`capture.footprint`,
             the fast solver's final joint solve, default) — how every camera and every renderer forms a pixel.
             False fits one ray per pixel centre only: exact only for photos rendered that way.
+        psf_sigma: σ (pixels) of a Gaussian blur (lens, demosaicing) in the photos' pixel filter, convolved with
+            the box; None = the dataset's ``psf_sigma`` (0 when scene.json has none).
         threads: torch intra-op threads for this call (restored after); None = leave as is. On a
             machine where another process holds a core, 1 thread is much faster than 2 (measured
             ~70× on small index_add ops: OpenMP threads wait for the busy core).
@@ -578,13 +580,18 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     obs = observe(texture_size)
     fp_all = fp = held_fp = None
+    psf = ds.psf_sigma if psf_sigma is None else psf_sigma
+    if isinstance(psf, bool) or not isinstance(psf, (int, float)) or not 0 <= psf <= 4:
+        raise ReconstructionError(f"psf_sigma must be a blur σ in pixels in [0, 4] or None (the dataset's), "
+                                  f"got {psf_sigma!r}")
     if footprint and solver == "fast" and sampling == "bilinear":
         from .footprint import observe_footprints, saving
 
         def footprints(size: int):
             return observe_footprints(ds.mesh, [v.camera for v in ds.views], [v.lights for v in ds.views],
                                       [p.gbuffer for p in preps], [p.radiance for p in photos], (size, size),
-                                      lights=all_lights, clipped=[p.unusable for p in photos], dtype=dtype)
+                                      lights=all_lights, clipped=[p.unusable for p in photos], dtype=dtype,
+                                      psf_sigma=psf)
 
         prog.start("footprints")
         fp_all = footprints(texture_size)
@@ -601,7 +608,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             "pixels": fp_all.n_pixels, "samples": fp_all.n_samples,
             "samples_per_pixel": dict(zip(*(x.tolist() for x in torch.unique(fp_all.counts, return_counts=True)),
                                           strict=True)),
-            "rays_cast": fp_all.cast_rays, "rays_saved_vs_uniform": saving(fp_all), "drops": fp_all.drops}
+            "rays_cast": fp_all.cast_rays, "rays_saved_vs_uniform": saving(fp_all), "drops": fp_all.drops,
+            "psf_sigma": float(psf)}
     all_obs, held_obs = obs, None
     if held_views:
         obs, held_obs = all_obs.select_views(fit_views), all_obs.select_views(held_views)

@@ -126,6 +126,9 @@ class SyntheticConfig:
             (:mod:`capture.footprint`: at most 4 × 4 at the strata's centres), so the photos cannot flatter the
             fit. 1 renders the pixel centres only — the fit's own discretisation, for exactness tests of a solver.
         jitter: random positions inside the strata (default); False puts them at the strata's centres.
+        psf_sigma: σ (pixels) of a Gaussian lens/demosaicing blur applied before the pixel's box filter (0: none).
+            The blur is applied to the image of the k × k strata (σ·k strata wide, so it is finer than and
+            placed differently from the fit's quadrature of the same filter); needs ``supersample`` ≥ 4.
         sampling: map sampling, "bilinear" (default) or "nearest" (each sample reads one texel).
         shadows: cast shadow rays.
         seed: seeds the random rig and the photo noise (view i uses seed·1000003 + i).
@@ -154,6 +157,7 @@ class SyntheticConfig:
     photo: PhotoModel = field(default_factory=PhotoModel)
     supersample: int = 8
     jitter: bool = True
+    psf_sigma: float = 0.0
     sampling: str = "bilinear"
     shadows: bool = True
     seed: int = 0
@@ -173,6 +177,12 @@ class SyntheticConfig:
             if isinstance(x, bool) or not isinstance(x, int) or x < (0 if name == "seed" else 1):
                 raise SyntheticError(f"{name} must be a {'non-negative' if name == 'seed' else 'positive'} integer, "
                                      f"got {x!r}")
+        if isinstance(self.psf_sigma, bool) or not isinstance(self.psf_sigma, (int, float)) \
+                or not 0 <= self.psf_sigma <= 4:
+            raise SyntheticError(f"psf_sigma must be a number of pixels in [0, 4] (0 = no blur), got {self.psf_sigma!r}")
+        if self.psf_sigma > 0 and self.supersample < 4:
+            raise SyntheticError(f"psf_sigma > 0 blurs the image of the sub-pixel strata and needs supersample ≥ 4, "
+                                 f"got supersample={self.supersample}")
         self.image_size = _size(self.image_size, "image_size")
         self.texture_size = _size(self.texture_size, "texture_size")
         if self.camera_rig not in CAMERA_RIGS:
@@ -577,15 +587,39 @@ def render_scene(scene: Scene, config: SyntheticConfig) -> tuple[list[Tensor], l
             gen = torch.Generator().manual_seed(config.seed * 7919 + vi) if config.jitter else None
             step = max(1, RENDER_BLOCK_RAYS // (k * k))
             acc = torch.zeros(n_pix, 3)
+            sub = torch.zeros(cam.height * k, cam.width * k, 3) if config.psf_sigma > 0 else None
             for start in range(0, len(todo), step):
                 g = render_gbuffer(scene.mesh, cam, k, jitter=gen, pixels=todo[start:start + step])
                 if len(g) == 0:
                     continue
                 prep = prepare(g, scene.mesh, view.lights, shadows=config.shadows)
                 rad = shade(scene.model, scene.maps, prep, sampling=config.sampling)
-                acc.index_add_(0, g.pixel, rad.to(acc.dtype) * g.weight[:, None].to(acc.dtype))
+                if sub is None:
+                    acc.index_add_(0, g.pixel, rad.to(acc.dtype) * g.weight[:, None].to(acc.dtype))
+                else:
+                    # the ray's stratum: its hit projected back (integer pixel centres: pixel x spans [x − ½, x + ½])
+                    xy, _ = cam.project(g.position.to(torch.float64))
+                    px, py = g.pixel % cam.width, g.pixel // cam.width
+                    sx = torch.minimum(torch.maximum(torch.floor((xy[:, 0] + 0.5) * k).long(), px * k), px * k + k - 1)
+                    sy = torch.minimum(torch.maximum(torch.floor((xy[:, 1] + 0.5) * k).long(), py * k), py * k + k - 1)
+                    sub[sy, sx] = rad.to(sub.dtype)
+            if sub is not None:
+                acc = _blur_strata(sub, config.psf_sigma * k, k).reshape(-1, 3)
             images.append(acc.reshape(cam.height, cam.width, 3))
     return images, preps
+
+
+def _blur_strata(sub: Tensor, sigma: float, k: int) -> Tensor:
+    """The image ``[H, W, 3]`` of a strata image ``[H·k, W·k, 3]``: a Gaussian blur of ``sigma`` strata (separable,
+    cut at 4σ, black beyond the image), then the k × k box of each pixel."""
+    r = max(1, math.ceil(4.0 * sigma))
+    x = torch.arange(-r, r + 1, dtype=torch.float64)
+    w = torch.exp(-0.5 * (x / sigma) ** 2)
+    w = (w / w.sum()).to(sub.dtype)
+    img = sub.permute(2, 0, 1)[:, None]                                          # [3, 1, Hk, Wk]
+    img = F.conv2d(img, w.view(1, 1, 1, -1), padding=(0, r))
+    img = F.conv2d(img, w.view(1, 1, -1, 1), padding=(r, 0))
+    return F.avg_pool2d(img, k)[:, 0].permute(1, 2, 0)
 
 
 def make_synthetic(config: SyntheticConfig, out_dir, overwrite: bool = False) -> Path:
@@ -610,8 +644,8 @@ def make_synthetic(config: SyntheticConfig, out_dir, overwrite: bool = False) ->
     cov = highlight_coverage(preps, config.texture_size, rough, scene.regions)
     gt = GroundTruth(
         model=scene.model_spec, maps=scene.maps, regions=scene.regions, region_names=dict(REGION_NAMES),
-        render={"supersample": config.supersample, "jitter": config.jitter, "sampling": config.sampling,
-                "shadows": config.shadows},
+        render={"supersample": config.supersample, "jitter": config.jitter, "psf_sigma": config.psf_sigma,
+                "sampling": config.sampling, "shadows": config.shadows},
         photo=config.photo.to_dict(),
     )
     meta = {
@@ -624,7 +658,8 @@ def make_synthetic(config: SyntheticConfig, out_dir, overwrite: bool = False) ->
     }
     photo = config.photo
     return write_dataset(out_dir, scene.mesh, scene.views, images, encoding=photo.encoding, bits=photo.bits,
-                         saturation=photo.saturation, half=photo.half, gt=gt, meta=meta, overwrite=overwrite)
+                         saturation=photo.saturation, half=photo.half, gt=gt, meta=meta, overwrite=overwrite,
+                         psf_sigma=float(config.psf_sigma))
 
 
 # ----------------------------------------------------------------------------------------------

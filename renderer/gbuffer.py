@@ -34,7 +34,8 @@ from torch import Tensor
 from .camera import Camera, _check_supersample
 from .mesh import Mesh
 
-__all__ = ["GBuffer", "render_gbuffer", "render_footprint", "intersect", "intersect_faces"]
+__all__ = ["GBuffer", "render_gbuffer", "render_footprint", "intersect", "intersect_faces", "pixel_filter",
+           "footprint_extent", "PSF_SUPPORT"]
 
 
 @dataclass
@@ -227,10 +228,34 @@ def _cast(mesh: Mesh, camera: Camera, xy: Tensor, pixel: Tensor, weight: Tensor,
     )
 
 
-def _strata(pixels: Tensor, k: int, width: int) -> Tensor:
-    """Image positions ``[M·k², 2]`` of the k × k strata centres of each pixel (pixel-major, x fastest inside a
-    pixel — the order of :meth:`renderer.camera.Camera.pixel_grid`)."""
-    off = (torch.arange(k, dtype=torch.float64) + 0.5) / k - 0.5
+#: Support of a Gaussian pixel filter's tail beyond the pixel's square, in σ: the box ⊗ Gaussian filter is cut
+#: where it has fallen below 0.14 % of its peak (the Gaussian's mass beyond 3σ on one side is 0.13 %).
+PSF_SUPPORT = 3.0
+
+
+def footprint_extent(psf_sigma: float) -> float:
+    """Side (pixels) of the square a pixel's filter covers: 1 for the box, ``1 + 2·PSF_SUPPORT·σ`` with a
+    Gaussian PSF of σ pixels."""
+    if isinstance(psf_sigma, bool) or not isinstance(psf_sigma, (int, float)) or not 0 <= psf_sigma <= 4:
+        raise ValueError(f"psf_sigma must be a number of pixels in [0, 4] (0 = box filter only), got {psf_sigma!r}")
+    return 1.0 + 2.0 * PSF_SUPPORT * float(psf_sigma)
+
+
+def pixel_filter(offset: Tensor, psf_sigma: float) -> Tensor:
+    """1-D pixel filter at ``offset`` (pixels from the pixel centre): the unit box, or with ``psf_sigma`` > 0 the
+    box convolved with a Gaussian of σ pixels, ``½ [erf((x + ½)/(σ√2)) − erf((x − ½)/(σ√2))]`` (integral 1). The
+    2-D filter is the product of the filters along x and y."""
+    x = torch.as_tensor(offset, dtype=torch.float64)
+    if psf_sigma == 0:
+        return ((x >= -0.5) & (x <= 0.5)).to(torch.float64)
+    s = float(psf_sigma) * 2.0 ** 0.5
+    return 0.5 * (torch.erf((x + 0.5) / s) - torch.erf((x - 0.5) / s))
+
+
+def _strata(pixels: Tensor, k: int, width: int, extent: float = 1.0) -> Tensor:
+    """Image positions ``[M·k², 2]`` of the k × k strata centres over each pixel's filter square of side ``extent``
+    (pixel-major, x fastest inside a pixel — the order of :meth:`renderer.camera.Camera.pixel_grid`)."""
+    off = ((torch.arange(k, dtype=torch.float64) + 0.5) / k - 0.5) * extent
     oy, ox = torch.meshgrid(off, off, indexing="ij")
     centre = torch.stack([(pixels % width).double(), (pixels // width).double()], -1)
     return (centre[:, None, :] + torch.stack([ox.reshape(-1), oy.reshape(-1)], -1)[None]).reshape(-1, 2)
@@ -276,16 +301,23 @@ def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1, *, jitter: 
     return _cast(mesh, camera, grid, pixel, torch.full((len(pixel),), 1.0 / (k * k), dtype=torch.float64), k)
 
 
-def render_footprint(mesh: Mesh, camera: Camera, pixels: Tensor, counts: Tensor) -> GBuffer:
+def render_footprint(mesh: Mesh, camera: Camera, pixels: Tensor, counts: Tensor, *,
+                     psf_sigma: float = 0.0) -> GBuffer:
     """The G-buffer of pixel footprints with a sample count chosen per pixel.
 
     Pixel ``pixels[i]`` (flat index y·W + x) is covered by ``counts[i]``² rays at the centres of a regular
     ``counts[i] × counts[i]`` grid of strata over its square (the box filter's footprint), each of weight
     ``1 / counts[i]²``; ``counts[i] = 1`` is the pixel centre. Misses are dropped as in :func:`render_gbuffer`, so
     a pixel whose weights sum to less than 1 is partly background. ``supersample`` records the largest count.
+
+    ``psf_sigma`` > 0 (pixels): the pixel filter is the box convolved with a Gaussian of that σ (lens blur,
+    demosaicing; :func:`pixel_filter`). The strata then cover the square grown by :data:`PSF_SUPPORT` σ on every
+    side (:func:`footprint_extent`) and each ray's weight is the filter's value at its stratum times the stratum's
+    area, normalised to sum 1 over the pixel.
     """
     _check_inputs(mesh, camera, "render_footprint")
     pixels = _check_pixels(pixels, camera, "render_footprint")
+    extent = footprint_extent(psf_sigma)
     counts = torch.as_tensor(counts).long()
     if counts.shape != pixels.shape or (counts.numel() and (int(counts.min()) < 1 or int(counts.max()) > 16)):
         raise ValueError(f"render_footprint: counts must hold one integer in [1, 16] per pixel ({tuple(pixels.shape)}),"
@@ -294,9 +326,12 @@ def render_footprint(mesh: Mesh, camera: Camera, pixels: Tensor, counts: Tensor)
     W = camera.width
     for k in torch.unique(counts).tolist():
         p = pixels[counts == k]
-        xy.append(_strata(p, k, W))
+        xy.append(_strata(p, k, W, extent))
         pix.append(p.repeat_interleave(k * k))
-        wt.append(torch.full((len(p) * k * k,), 1.0 / (k * k), dtype=torch.float64))
+        off = ((torch.arange(k, dtype=torch.float64) + 0.5) / k - 0.5) * extent
+        w1 = pixel_filter(off, psf_sigma)
+        w2 = (w1[:, None] * w1[None, :]).reshape(-1)
+        wt.append((w2 / w2.sum()).repeat(len(p)))
     if not xy:
         xy, pix, wt = [torch.zeros(0, 2, dtype=torch.float64)], [torch.zeros(0, dtype=torch.long)], \
             [torch.zeros(0, dtype=torch.float64)]

@@ -117,3 +117,50 @@ def test_footprint_fit_recovers_a_texture_finer_than_its_pixels():
     assert rmse[True][0] < 0.85 * rmse[False][0]
     assert rmse[True][1] < 0.01 and rmse[True][1] < 0.35 * rmse[False][1]
     assert float(resolved.sum()) > 0.3 * float(well.sum())
+
+
+def test_gaussian_psf_in_the_pixel_filter_explains_blurred_photos(tmp_path):
+    """Photos blurred by a Gaussian PSF (σ = 0.7 px; synthetic: the blur applied to the image of the 8 × 8 jittered
+    strata, then the box — not the fit's quadrature) and written with ``psf_sigma`` in scene.json: reconstruct
+    reads it and the footprints model it; fitted with the box alone (psf_sigma=0) the photos are not explained.
+    Measured (Lambert UV sphere, 4 views of 64 px, 32² maps): χ² per residual 0.40 against 22.9, albedo RMSE on
+    well-lit texels 0.052 against 0.070."""
+    from capture.dataset import load_dataset
+    from capture.reconstruct import reconstruct
+    from capture.synthetic import make_synthetic
+
+    cfg = small_scene("lambert", image_size=64, texture_size=32, n_views=4, psf_sigma=0.7)
+    ds = make_synthetic(cfg, tmp_path / "ds")
+    assert load_dataset(ds, check_images=False).psf_sigma == 0.7
+    r = {psf: reconstruct(ds, model="lambert", out_dir=tmp_path / f"r{psf}", progress=False, psf_sigma=psf)
+         for psf in (None, 0.0)}
+    assert r[None].samples["footprints"]["psf_sigma"] == 0.7
+    chi2 = {k: v.fit["chi2_per_residual"] for k, v in r.items()}
+    err = {k: v.errors["maps_by_texel_set"]["well_lit"]["albedo"] for k, v in r.items()}
+    assert chi2[None] < 1.0 and chi2[0.0] > 10 * chi2[None]
+    assert err[None] < 0.065 and err[None] < 0.85 * err[0.0]
+
+
+def test_psf_sigma_is_validated_where_users_give_it(tmp_path):
+    """A PSF σ outside [0, 4] px, a synthetic PSF without sub-pixel strata, and a negative scene.json value are
+    refused with the field named."""
+    import json
+
+    from capture.dataset import DatasetError, load_dataset
+    from capture.reconstruct import ReconstructionError, reconstruct
+    from capture.synthetic import SyntheticError, make_synthetic
+
+    with pytest.raises(SyntheticError, match="supersample"):
+        small_scene("lambert", psf_sigma=0.5, supersample=1)
+    with pytest.raises(SyntheticError, match="psf_sigma"):
+        small_scene("lambert", psf_sigma=5.0)
+    ds = make_synthetic(small_scene("lambert", image_size=32, texture_size=16, n_views=2, supersample=4),
+                        tmp_path / "ds")
+    with pytest.raises(ReconstructionError, match="psf_sigma"):
+        reconstruct(ds, model="lambert", out_dir=tmp_path / "r", progress=False, psf_sigma=-1.0)
+    doc = json.loads((ds / "scene.json").read_text())
+    assert "psf_sigma" not in doc                         # written only when there is a blur
+    doc["psf_sigma"] = -0.5
+    (ds / "scene.json").write_text(json.dumps(doc))
+    with pytest.raises(DatasetError, match="psf_sigma"):
+        load_dataset(ds, check_images=False)

@@ -143,3 +143,33 @@ def test_jittered_samples_stay_in_their_strata_and_differ_from_the_centres():
     assert float(d.mean()) > 0.25 * 0.5 / k          # uniform in the stratum: mean |offset| = 1/(4k) per axis
     again = cam.jittered_grid(k, torch.Generator().manual_seed(1), torch.float64)
     assert torch.equal(jit, again)
+
+
+def test_gaussian_pixel_filter_is_the_box_convolved_with_the_gaussian():
+    """pixel_filter's closed form (erf) against the convolution of the unit box with a Gaussian integrated
+    numerically (trapezoid, 20 001 points), and the 2-D weights of render_footprint with a PSF: they sum to 1 per
+    pixel, are centred on the pixel, and their variance per axis is the box's 1/12 plus σ² (variances add under
+    convolution; 3σ truncation and the k-point quadrature keep it within 2 %)."""
+    from renderer.gbuffer import footprint_extent, pixel_filter, render_footprint
+
+    sigma = 0.6
+    x = torch.linspace(-2.5, 2.5, 21, dtype=torch.float64)
+    t = np.linspace(-0.5, 0.5, 20001)
+    ref = [np.trapezoid(np.exp(-0.5 * ((xi - t) / sigma) ** 2) / (sigma * math.sqrt(2 * math.pi)), t)
+           for xi in x.tolist()]
+    assert pixel_filter(x, sigma).tolist() == pytest.approx(ref, abs=1e-8)
+    assert pixel_filter(torch.tensor([0.0, 0.49, 0.51]), 0.0).tolist() == [1.0, 1.0, 0.0]
+    assert footprint_extent(sigma) == pytest.approx(1 + 6 * sigma)
+    with pytest.raises(ValueError, match="psf_sigma"):
+        footprint_extent(-0.1)
+
+    m = plane(size=4.0)
+    cam = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_y_deg=30, width=20, height=20)
+    pixels = torch.tensor([10 * 20 + 10])
+    g = render_footprint(m, cam, pixels, torch.tensor([16]), psf_sigma=sigma)
+    assert len(g) == 256 and float(g.weight.double().sum()) == pytest.approx(1.0, abs=1e-6)
+    xy, _ = cam.project(g.position.double())
+    off = xy - torch.tensor([10.0, 10.0], dtype=torch.float64)
+    w = g.weight.double()[:, None]
+    assert (w * off).sum(0).abs().max() < 1e-6
+    assert ((w * off ** 2).sum(0) / (1 / 12 + sigma ** 2)).tolist() == pytest.approx([1.0, 1.0], abs=0.02)
