@@ -133,7 +133,7 @@ def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], o
 def determined_at_truth(model, obs, gt: Mapping[str, Tensor], *, sampling: str = "nearest",
                         noise=None, observable_std=None) -> dict[str, Tensor]:
     """Per parameter of ``model``: ``[H, W]`` bool, the observed texels whose value the photos determine
-    *at the true maps* ``gt`` — the marginal posterior std of :func:`capture.solvers.posterior_std` (same
+    *at the true maps* ``gt`` — the marginal posterior std of :func:`capture.fit.observability.posterior_std` (same
     noise model, sampling and thresholds as a fit's observability test) evaluated at the truth, below the
     parameter's threshold.
 
@@ -149,7 +149,9 @@ def determined_at_truth(model, obs, gt: Mapping[str, Tensor], *, sampling: str =
         gt: name → true map ``[H, W, C]`` in canonical units, ``(H, W) = obs.map_size``.
         sampling: "nearest" or "bilinear", as the fit's; noise, observable_std: as the fit's (None = defaults).
     """
-    from .solvers import ACC, NOISE, Layout, _groups, determined, posterior_std
+    from .fit.layout import ACC, Layout, param_groups
+    from .fit.noise import NOISE
+    from .fit.observability import determined, posterior_std
 
     H, W = obs.map_size
     layout = Layout.of(model)
@@ -165,7 +167,7 @@ def determined_at_truth(model, obs, gt: Mapping[str, Tensor], *, sampling: str =
         raise MetricsError(f"determined_at_truth: sampling must be 'nearest' or 'bilinear', got {sampling!r}")
     T = H * W
     canon = torch.cat([gt[s.name].reshape(T, s.channels).to(obs.device, ACC) for s in layout.specs], -1)
-    std, observed, _ = posterior_std(model, layout, obs, canon, _groups(layout), noise=NOISE if noise is None
+    std, observed, _ = posterior_std(model, layout, obs, canon, param_groups(layout), noise=NOISE if noise is None
                                      else noise, sampling=sampling)
     return {k: m.reshape(H, W) for k, m in determined(layout, std, observed, observable_std).items()}
 

@@ -238,7 +238,7 @@ def noise_residual(photo: Tensor, valid: Tensor) -> Tensor:
     noise variance estimation", CVIU 1996) divided by 6, so that on smooth shading under white noise of std σ each
     value has std σ. NaN where the 3 × 3 neighbourhood leaves ``valid [H, W]`` (bool: object pixels, finite, not
     clipped). Edges and highlights give large values at few pixels, so the noise level is read from robust
-    statistics (a low quantile, :func:`capture.solvers.photo_noise_ratio`)."""
+    statistics (a low quantile, :func:`capture.fit.noise.photo_noise_ratio`)."""
     img = photo.permute(2, 0, 1)[:, None]                                            # [3, 1, H, W]
     k = _IMMERKAER.to(img)[None, None]
     r = F.conv2d(F.pad(img, (1, 1, 1, 1)), k)[:, 0].permute(1, 2, 0)

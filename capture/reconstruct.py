@@ -13,7 +13,7 @@
    photos within their noise (χ² per residual ≤ :data:`AUTO_EXPLAINED_CHI2`). Maps larger than
    :data:`AUTO_TRIAL_TEXTURE`² are judged on a coarser copy of the problem (:func:`_trial_observations`).
    The chosen model is then refit on all views at full size.
-5. ``solve``: :func:`capture.solvers.solve_fast` (default) or :func:`capture.solvers.solve_adam`.
+5. ``solve``: :func:`capture.fit.fast.solve_fast` (default) or :func:`capture.fit.adam.solve_adam`.
 6. ``write``: maps (EXR linear + PNG), confidence maps (EXR + a PNG preview with a colour bar), coverage, the
    labelled views pages (photo | re-render | relative error, :func:`capture.plots.plot_views`), ``report.json``,
    ``summary.txt`` (with advice on the directions the photos miss), ``mesh.obj`` — into a
@@ -21,7 +21,7 @@
    sees a half-written output and a failure leaves nothing behind.
 
 Unobservable parameters (decision): a parameter the photos do not pin down in a texel — its
-marginal posterior std (:func:`capture.solvers.posterior_std`) at or above the threshold, e.g.
+marginal posterior std (:func:`capture.fit.observability.posterior_std`) at or above the threshold, e.g.
 roughness and f0 where no highlight was seen, or albedo and f0 trading off — is *not* an error: it
 is filled from observable neighbours (pull-push) — or, with reflectance sharing (the default for
 bilinear datasets), keeps its material's estimate — flagged in ``unobservable_<name>.png``, its std
@@ -51,8 +51,9 @@ from torch import Tensor
 from materials import KnownParams
 from materials.roughness import half_max_angle, roughness_to_alpha
 
+from .fit import LOSSES, NOISE, FitResult, SolverError, photo_noise_ratio, photo_sigma, solve_adam, solve_fast
+from .fit.options import FitOptions
 from .observations import Observations, observe_views
-from .solvers import LOSSES, NOISE, FitResult, SolverError, photo_noise_ratio, photo_sigma, solve_adam, solve_fast
 
 __all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "AUTO_EXPLAINED_CHI2",
            "AUTO_TRIAL_TEXTURE", "AUTO_TRIAL_MIN_SAMPLES", "SCALARS", "UNRESOLVED_WARN", "unresolved_roughness"]
@@ -159,10 +160,9 @@ def static_lights(views) -> tuple[bool, int, int]:
     return len(views) >= 2 and bool(keys) and 2 * pairs >= len(views) * len(keys), len(keys), pairs
 
 
-_FAST_KEYS = ("iterations", "grid", "refine", "schedule", "smoothness", "delta", "observable_std", "noise",
-              "reproject", "sampling", "joint_iterations", "cg_iterations", "tol", "fill_before_joint",
-              "share", "candidates", "sharing", "sharing_albedo", "anchor_weight", "pooled", "footprints",
-              "footprint_iterations")
+#: The fast solver's options (every field of FitOptions but the loss, which reconstruct takes itself) and the pixel
+#: footprints it fits (an input, not an option).
+_FAST_KEYS = tuple(n for n in FitOptions.names() if n != "loss") + ("footprints",)
 _ADAM_KEYS = ("iterations", "lr", "delta", "observable_std", "noise", "sampling", "time_budget_s")
 
 
@@ -331,7 +331,7 @@ def _auto_verdict(tried: list[dict], params, err: float, chi2: float, best_err: 
 def _footprint_misfit(model, fit: FitResult, fp, obs: Observations, noise=NOISE) -> float:
     """:func:`_misfit` of the photos' pixels as the footprint operator predicts them (:mod:`capture.footprint`),
     σ from the noise model at each pixel's value, scaled by the noise measured in image space (``obs``)."""
-    from .solvers import noise_sigma
+    from .fit import noise_sigma
 
     y = fp.radiance.to(torch.float64)
     sigma = noise_sigma(y, noise) * math.sqrt(max(1.0, photo_noise_ratio(obs, noise) or 1.0))
@@ -343,7 +343,7 @@ def _footprint_misfit(model, fit: FitResult, fp, obs: Observations, noise=NOISE)
 def _misfit(model, fit: FitResult, obs: Observations, sampling: str, noise=NOISE) -> float:
     """How well a fit explains the photos it was fitted to: the weighted mean over samples and channels of
     ``(r / σ)²``, ``r`` the residual of the fit's own (raw) maps and σ the photos' noise
-    (:func:`capture.solvers.photo_sigma`: the 1 % noise model, scaled to the noise measured in image space where the
+    (:func:`capture.fit.noise.photo_sigma`: the 1 % noise model, scaled to the noise measured in image space where the
     photos are noisier) — a χ² per residual, about 1 or less when the model explains the photos as well as their
     noise allows."""
     sigma = photo_sigma(obs, noise, photo_noise_ratio(obs, noise))
@@ -437,7 +437,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             view is shown, the held-out ones first).
         sampling: how a sample reads the maps: "nearest" or "bilinear"; None = "bilinear" (a texture-mapped
             surface; the ground truth, when a dataset has one, is never read to decide how to fit). Bilinear runs
-            the per-texel solve and then the joint refinement (:func:`capture.solvers.refine_joint`).
+            the per-texel solve and then the joint refinement (:func:`capture.fit.joint.refine_joint`).
         footprint: fit the photos' pixels as area averages over their footprints (:mod:`capture.footprint`,
             the fast solver's final joint solve, default) — how every camera and every renderer forms a pixel.
             False fits one ray per pixel centre only: exact only for photos rendered that way.
@@ -467,7 +467,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             which have no ground truth. None = every view is fitted. ``model="auto"`` splits the fitted views
             only.
         **options: passed to the solver (iterations, grid, schedule, smoothness, delta, lr, ...). The fast
-            solver's ``pooled`` (pooled material proposals, :func:`capture.solvers.solve_fast`) defaults to
+            solver's ``pooled`` (pooled material proposals, :func:`capture.fit.fast.solve_fast`) defaults to
             :data:`POOLED_STATIC` when :func:`static_lights` says the lights stay fixed relative to the object
             and to 0 (off) otherwise; pass ``pooled=0`` or a tile size to decide yourself (``report.fit["pooled"]``
             says what was used and why).

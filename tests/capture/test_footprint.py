@@ -6,9 +6,11 @@ import pytest
 import torch
 
 import materials
+from capture.fit import Layout, solve_fast
+from capture.fit.layout import param_groups
+from capture.fit.operators import PixelOperator
 from capture.footprint import FOOTPRINT_MAX, FOOTPRINT_SPACING, footprint_counts, observe_footprints, saving
 from capture.observations import observe_views
-from capture.solvers import Layout, PixelOperator, _groups, solve_fast
 from capture.synthetic import build_scene, render_scene, small_scene
 from renderer.camera import look_at
 from renderer.gbuffer import render_gbuffer
@@ -81,7 +83,7 @@ def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx):
     canon = canon.clamp(0.05, 0.95)
     sel.samples = sel.samples.to(dtype=torch.float64)
     op = PixelOperator(sel, T * T)
-    pred, C = op.linearise(model, layout, canon, _groups(layout))
+    pred, C = op.linearise(model, layout, canon, param_groups(layout))
     gen = torch.Generator().manual_seed(0)
     u = torch.randn(T * T, layout.P, generator=gen, dtype=torch.float64)
     h = 1e-6

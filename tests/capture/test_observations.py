@@ -88,7 +88,7 @@ def test_noise_residual_reads_the_noise_and_not_smooth_shading():
 def test_photo_noise_ratio_by_hand():
     from types import SimpleNamespace
 
-    from capture.solvers import NOISE, noise_sigma, photo_noise_ratio
+    from capture.fit.noise import NOISE, noise_sigma, photo_noise_ratio
 
     gen = torch.Generator().manual_seed(1)
     y = torch.rand(20000, 3, generator=gen, dtype=torch.float64) * 2
@@ -116,7 +116,7 @@ def test_noise_floor_by_hand():
     # median, times √ratio when the photos are noisier than that model; weighted like the data term
     from types import SimpleNamespace
 
-    from capture.solvers import NOISE, _noise_floor
+    from capture.fit.noise import NOISE, noise_floor
 
     y = torch.tensor([[1.0, 2.0, 4.0], [0.1, 0.0, 3.0], [2.0, 2.0, 2.0]], dtype=torch.float64)
     w = torch.tensor([1.0, 3.0, 2.0], dtype=torch.float64)
@@ -124,11 +124,11 @@ def test_noise_floor_by_hand():
     sig = 0.01 * torch.tensor([[1.0, 2.0, 4.0], [0.2, 0.2, 3.0], [2.0, 2.0, 2.0]], dtype=torch.float64)
     by_hand = float((sig.square().sum(-1) * w).sum() / (3 * w.sum()))
     obs = SimpleNamespace(radiance=y, weight=w)
-    assert math.isclose(_noise_floor(obs, NOISE, None, "l2", 1.0), by_hand, rel_tol=1e-12)
-    assert math.isclose(_noise_floor(obs, NOISE, 0.3, "l2", 1.0), by_hand, rel_tol=1e-12)      # never below the model
-    assert math.isclose(_noise_floor(obs, NOISE, 25.0, "l2", 1.0), 25.0 * by_hand, rel_tol=1e-12)
+    assert math.isclose(noise_floor(obs, NOISE, None, "l2", 1.0), by_hand, rel_tol=1e-12)
+    assert math.isclose(noise_floor(obs, NOISE, 0.3, "l2", 1.0), by_hand, rel_tol=1e-12)      # never below the model
+    assert math.isclose(noise_floor(obs, NOISE, 25.0, "l2", 1.0), 25.0 * by_hand, rel_tol=1e-12)
     # huber with δ below some residuals: 2δ|r| − δ² there
     d = 0.02
     rho = torch.where(sig <= d, sig.square(), 2 * d * sig - d * d)
-    assert math.isclose(_noise_floor(obs, NOISE, None, "huber", d), float((rho.sum(-1) * w).sum() / (3 * w.sum())),
+    assert math.isclose(noise_floor(obs, NOISE, None, "huber", d), float((rho.sum(-1) * w).sum() / (3 * w.sum())),
                         rel_tol=1e-12)

@@ -12,9 +12,9 @@ import capture.reconstruct as R
 import materials
 from capture import synthetic
 from capture.dataset import DatasetError
+from capture.fit.joint import JOINT_ATTEMPTS
 from capture.observations import synthetic_observations
 from capture.reconstruct import UNRESOLVED_WARN, ReconstructionError, unresolved_roughness
-from capture.solvers import JOINT_ATTEMPTS
 from capture.synthetic import make_synthetic
 from materials.roughness import half_max_angle
 from renderer.imageio import read_exr
@@ -128,7 +128,7 @@ def test_misfit_is_a_chi2_per_residual_by_hand():
     # raises σ only where it exceeds the model's
     from types import SimpleNamespace
 
-    from capture.solvers import _CHI2_1_Q10, noise_sigma
+    from capture.fit.noise import CHI2_1_Q10, noise_sigma
 
     model = materials.get("lambert")
     albedo = torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64) + 0.01 * torch.arange(32, dtype=torch.float64)[:, None]
@@ -146,7 +146,7 @@ def test_misfit_is_a_chi2_per_residual_by_hand():
     # image-space residuals of c σ everywhere read a noise ratio c² / (χ²₁'s 10 % quantile): 4 here, and σ doubles
     assert torch.allclose(sigma, noise_sigma(y, R.NOISE))
     for ratio, expected in ((4.0, chi2 / 4), (0.25, chi2)):
-        noisy = replace(brighter, noise_residual=sigma * math.sqrt(ratio * _CHI2_1_Q10))
+        noisy = replace(brighter, noise_residual=sigma * math.sqrt(ratio * CHI2_1_Q10))
         assert R._misfit(model, fit, noisy, "nearest") == pytest.approx(expected, rel=1e-6), ratio
 
 
@@ -513,12 +513,13 @@ def test_fully_rough_scene_without_anchors_falls_back_and_warns_and_loosened_anc
     # held there (ANCHOR_LOOSENING = (1,)) the sharing has none and must fall back to the fill and warn (it once ran
     # the joint prior on raw per-texel values: roughness RMSE 0.43, no warning); measured albedo / f0 / roughness
     # 0.104 / 0.211 / 0.063 on all observed texels.
-    import capture.solvers
+    import capture.fit.fast
+    import capture.fit.observability
 
     base = small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6)
     make_synthetic(replace(base, uniform={"roughness": 1.0}), tmp_path / "ds")
     with monkeypatch.context() as m:
-        m.setattr(capture.solvers, "ANCHOR_LOOSENING", (1.0,))
+        m.setattr(capture.fit.observability, "ANCHOR_LOOSENING", (1.0,))
         rep = reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / "o", progress=False)
     assert rep.fit["materials"] == [] and rep.fit["share_anchors"] == 0
     assert any("'roughness' is unobservable in every observed texel" in w for w in rep.warnings)
@@ -612,12 +613,13 @@ def test_sharing_that_misses_a_material_falls_back_to_the_texels_own_fits(tmp_pa
     # Since session 12 the anchors loosen when fewer than 1 % of the texels qualify (2 here; × 10 gives 9, among them
     # metal texels), and then the sharing no longer misses the metals (checked at the end); the fallback is tested
     # with the anchors held at the thresholds.
-    import capture.solvers
+    import capture.fit.fast
+    import capture.fit.observability
 
     make_synthetic(small_scene("gotanda2012-layered", uniform={"coat_roughness": 0.1}, image_size=64, texture_size=32,
                                n_views=8), tmp_path / "ds")
     with monkeypatch.context() as m:
-        m.setattr(capture.solvers, "ANCHOR_LOOSENING", (1.0,))
+        m.setattr(capture.fit.observability, "ANCHOR_LOOSENING", (1.0,))
         rep = reconstruct(tmp_path / "ds", model="gotanda2012-layered", out_dir=tmp_path / "o", progress=False)
     fb = rep.fit["sharing_fallback"]
     assert fb["kept"] == "fallback" and fb["own_fit_texels"] > 0, fb
@@ -645,18 +647,19 @@ def test_scarce_anchors_whose_materials_miss_the_photos_are_seeded_again(tmp_pat
     # the sharing runs again from the texels at ANCHOR_RETRY_FACTOR × the thresholds. Measured: at × 10 (9 anchors,
     # what the default ladder reaches) the second fit costs 2.0e-4 and is kept — worst / mean view 21.5 / 30.7 →
     # 24.4 / 43.1 dB, the default's result; at × 30 (24 anchors) it costs 3.1e-3 and the first fit stays.
-    import capture.solvers
+    import capture.fit.fast
+    import capture.fit.observability
 
     make_synthetic(small_scene("gotanda2012-layered", uniform={"coat_roughness": 0.1}, image_size=64, texture_size=32,
                                n_views=8), tmp_path / "ds")
     runs = {}
-    default = capture.solvers.MISFIT_RETRY
+    default = capture.fit.fast.MISFIT_RETRY
     for name, ladder, factor, misfit in (("x10", (1.0,), 10.0, default), ("x30", (1.0,), 30.0, default),
                                          ("off", (1.0,), 10.0, 1e9), ("enough", (1.0, 3.0, 10.0), 30.0, 0.0)):
         with monkeypatch.context() as m:
-            m.setattr(capture.solvers, "ANCHOR_LOOSENING", ladder)
-            m.setattr(capture.solvers, "ANCHOR_RETRY_FACTOR", factor)
-            m.setattr(capture.solvers, "MISFIT_RETRY", misfit)
+            m.setattr(capture.fit.observability, "ANCHOR_LOOSENING", ladder)
+            m.setattr(capture.fit.fast, "ANCHOR_RETRY_FACTOR", factor)
+            m.setattr(capture.fit.fast, "MISFIT_RETRY", misfit)
             runs[name] = reconstruct(tmp_path / "ds", model="gotanda2012-layered", out_dir=tmp_path / name,
                                      progress=False)
     psnr = {k: [v["psnr"] for v in r.views] for k, r in runs.items()}
@@ -680,8 +683,8 @@ def test_scarce_anchors_whose_materials_miss_the_photos_are_seeded_again(tmp_pat
 
 def test_heldout_error_of_auto_uses_the_filled_maps():
     # auto must judge the maps a user gets: the raw per-texel values of unobservable parameters are arbitrary
+    from capture.fit import solve_fast
     from capture.reconstruct import _heldout_error
-    from capture.solvers import solve_fast
 
     model = materials.get("ggx-lambert")
     g = torch.Generator().manual_seed(0)
@@ -776,7 +779,7 @@ def test_per_texel_lm_stops_early_once_its_cost_settles(tmp_path):
     # iterations once the cost drops by < BILINEAR_LM_TOL twice in a row (GGX + Lambert from its closed-form grid:
     # drops of ~1e-4 per iteration), and runs its 10 while the cost still falls fast (the layered model, whose
     # per-texel fit the fallback to the texels' own fits measures against; a fixed 5 broke that, session 11).
-    from capture.solvers import BILINEAR_LM_MIN
+    from capture.fit.texel import BILINEAR_LM_MIN
 
     make_synthetic(small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6), tmp_path / "ggx")
     rep = reconstruct(tmp_path / "ggx", model="ggx-lambert", out_dir=tmp_path / "o1", progress=False)

@@ -1,12 +1,13 @@
-"""Reflectance sharing (capture/sharing.py) and the edge-preserving prior of the joint refinement."""
+"""Reflectance sharing (capture/fit/sharing.py) and the edge-preserving prior of the joint refinement."""
 
 import pytest
 import torch
 import torch.nn.functional as F
 
 import materials
-from capture.observations import synthetic_observations
-from capture.sharing import (
+from capture.fit import Layout, SolverError, solve_fast
+from capture.fit.joint import _SharingPrior
+from capture.fit.sharing import (
     _albedo_prior,
     _assign,
     _box_sum,
@@ -17,7 +18,7 @@ from capture.sharing import (
     share_materials,
     unmatched_texels,
 )
-from capture.solvers import Layout, SolverError, _SharingPrior, solve_fast
+from capture.observations import synthetic_observations
 
 
 def _ggx_lambert():
@@ -409,13 +410,14 @@ def test_footprint_counts_bilinear_neighbours_with_positive_weight_only():
 
 
 def test_refine_joint_rejects_bad_sharing_options():
-    from capture.solvers import _groups, refine_joint
+    from capture.fit.joint import refine_joint
+    from capture.fit.layout import param_groups
 
     model = _ggx_lambert()
     obs = synthetic_observations(model, _two_material_scene(), samples_per_texel=2)
     layout = Layout.of(model)
     theta = torch.zeros(obs.n_texels, layout.P, dtype=torch.float64)
-    groups = _groups(layout)
+    groups = param_groups(layout)
     with pytest.raises(SolverError, match="not parameters"):
         refine_joint(model, obs, layout, theta, groups, loss="l2", delta=1.0, sampling="nearest", sharing=1.0,
                      sharing_params=["gloss"])
@@ -431,13 +433,13 @@ def test_pooled_materials_recover_a_tile_lobe_that_no_single_texel_determines():
     # texel its own albedo. Three samples per texel, none near the mirror direction: one texel's samples cannot
     # tell f0 from roughness, the 48 samples of a tile can. Noise-free and rendered by the same model, so the
     # pooled least squares must return the tile's lobe and a zero cost.
-    from capture.sharing import _chi2_observations, pooled_materials
-    from capture.solvers import _grid_values
+    from capture.fit.sharing import _chi2_observations, pooled_materials
+    from capture.fit.texel import grid_values
 
     model = _ggx_lambert()
     layout = Layout.of(model)
     rough_spec = next(s for s in layout.specs if s.name == "roughness")
-    values = _grid_values(rough_spec, 12, torch.float64, "cpu")
+    values = grid_values(rough_spec, 12, torch.float64, "cpu")
     lobes = [((0.9, 0.6, 0.3), values[7]), ((0.04, 0.04, 0.04), values[10]),
              ((0.05, 0.08, 0.12), values[9]), ((0.5, 0.5, 0.5), values[5])]
     g = torch.Generator().manual_seed(4)
@@ -498,8 +500,8 @@ def test_refit_recovers_the_materials_and_stops_those_that_have_settled():
     # (cost at rounding level: it settles at once and its samples leave the later iterations), the right one 0.1
     # off in roughness and f0. The refit brings it back to 1e-17 (measured) and ends where refitting every
     # material on every sample for all iterations (rtol = 0) ends.
-    from capture.sharing import _chi2_observations, _refit
-    from capture.solvers import ACC, _groups
+    from capture.fit.layout import ACC, param_groups
+    from capture.fit.sharing import _chi2_observations, _refit
 
     model = _ggx_lambert()
     gt = _two_material_scene()
@@ -509,7 +511,7 @@ def test_refit_recovers_the_materials_and_stops_those_that_have_settled():
     theta = layout.pack({k: v.reshape(256, -1) for k, v in gt.items()})
     label = (torch.arange(256) % 16 >= 8).long()
     scols = layout.cols("f0") + layout.cols("roughness")
-    groups = [c for c in _groups(layout) if all(x in scols for x in c)]
+    groups = [c for c in param_groups(layout) if all(x in scols for x in c)]
     truth = theta[[0, 8]].clone()
     start = layout.unpack(truth)
     start["roughness"][1] += 0.1

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 import materials
+from capture.fit import FitOptions, Layout, SolverError, pull_push, solve_adam, solve_fast
 from capture.observations import synthetic_observations
-from capture.solvers import Layout, SolverError, pull_push, solve_adam, solve_fast
 
 
 def _ggx_lambert():
@@ -59,7 +59,8 @@ def test_posterior_std_flags_the_albedo_f0_trade_off():
     # GGX tail is almost Lambertian, so albedo and f0 trade off. At the true maps (zero residual)
     # the marginal posterior std (1 % photo noise) is measured: 4 samples per texel → median
     # albedo 0.017, f0 0.031 (> 0.01: flagged); 16 samples → 0.0052, 0.0083 (shrinks with data)
-    from capture.solvers import Layout, _groups, posterior_std
+    from capture.fit import Layout, posterior_std
+    from capture.fit.layout import param_groups
 
     model = _ggx_lambert()
     lay = Layout.of(model)
@@ -69,7 +70,7 @@ def test_posterior_std_flags_the_albedo_f0_trade_off():
         gt["roughness"] = torch.full((4, 4, 1), 0.95, dtype=torch.float64)
         obs = synthetic_observations(model, gt, samples_per_texel=spt, highlight_fraction=0.0)
         canon = torch.cat([gt[s.name].reshape(16, -1) for s in lay.specs], -1)
-        std, observed, pred = posterior_std(model, lay, obs, canon, _groups(lay))
+        std, observed, pred = posterior_std(model, lay, obs, canon, param_groups(lay))
         assert observed.all()
         torch.testing.assert_close(pred, obs.radiance)
         med[spt] = {k: float(std[:, lay.cols(k)].median()) for k in ("albedo", "f0", "roughness")}
@@ -85,7 +86,8 @@ def test_posterior_std_follows_the_photos_measured_noise():
     # model's noise, it is as before.
     from dataclasses import replace
 
-    from capture.solvers import NOISE, Layout, _groups, noise_sigma, photo_noise_ratio, posterior_std
+    from capture.fit import NOISE, Layout, noise_sigma, photo_noise_ratio, posterior_std
+    from capture.fit.layout import param_groups
 
     model = materials.get("lambert")
     lay = Layout.of(model)
@@ -94,14 +96,14 @@ def test_posterior_std_follows_the_photos_measured_noise():
     gen = torch.Generator().manual_seed(4)
     for spt, dof in ((1, 0), (30, 87)):
         obs = synthetic_observations(model, gt, samples_per_texel=spt)
-        std0, _, _ = posterior_std(model, lay, obs, canon, _groups(lay))
+        std0, _, _ = posterior_std(model, lay, obs, canon, param_groups(lay))
         sig = noise_sigma(obs.radiance, NOISE)
         for k in (5.0, 0.5):
             noisy = replace(obs, noise_residual=k * sig * torch.randn(obs.n_samples, 3, generator=gen,
                                                                        dtype=torch.float64))
             ratio = photo_noise_ratio(noisy)
             assert abs(ratio / k**2 - 1) < 0.3, (k, ratio)
-            std, _, _ = posterior_std(model, lay, noisy, canon, _groups(lay))
+            std, _, _ = posterior_std(model, lay, noisy, canon, param_groups(lay))
             expect = math.sqrt(max(1.0, 6 * ratio / (dof + 6))) if ratio > 1 else 1.0
             torch.testing.assert_close(std / std0, torch.full_like(std, expect))
 
@@ -113,14 +115,15 @@ def test_posterior_std_with_a_bilinear_footprint():
     # variance doubles (std × √2) while χ² and the residual count (Σ w) stay as they are
     from dataclasses import replace
 
-    from capture.solvers import Layout, _groups, posterior_std
+    from capture.fit import Layout, posterior_std
+    from capture.fit.layout import param_groups
 
     model = _ggx_lambert()
     lay = Layout.of(model)
     gt = _maps(4, 4)
     obs = synthetic_observations(model, gt, samples_per_texel=8)
     canon = torch.cat([gt[s.name].reshape(16, -1) for s in lay.specs], -1)
-    groups = _groups(lay)
+    groups = param_groups(lay)
     near, observed, _ = posterior_std(model, lay, obs, canon, groups)
     g = torch.Generator().manual_seed(5)
     S = obs.n_samples
@@ -205,6 +208,24 @@ def test_bad_inputs():
         solve_fast(model, obs, init={"absorption": torch.zeros(2, 2, 3)})
 
 
+def test_fit_options_are_checked_once_and_recorded():
+    model = materials.get("lambert")
+    gt = {"albedo": torch.full((3, 3, 3), 0.5, dtype=torch.float64)}
+    obs = synthetic_observations(model, gt, samples_per_texel=4)
+    with pytest.raises(SolverError, match="candidates must be an integer"):
+        FitOptions(candidates=0)
+    with pytest.raises(SolverError, match="sampling must be"):
+        FitOptions(sampling="cubic")
+    # an unknown keyword names the valid ones; keywords override the options object's fields
+    with pytest.raises(SolverError, match=r"unknown solve_fast option\(s\) \['grids'\].*'grid'"):
+        solve_fast(model, obs, grids=4)
+    with pytest.raises(SolverError, match="schedule"):
+        solve_fast(model, obs, FitOptions(), schedule="random")
+    res = solve_fast(model, obs, FitOptions(iterations=0, noise=(0.02, 0.1)), grid=4)
+    assert res.info["options"] == {**FitOptions().to_dict(), "iterations": 0, "grid": 4, "noise": [0.02, 0.1]}
+    assert (res.maps["albedo"] - gt["albedo"]).abs().max() < 1e-6
+
+
 def test_staged_schedule_and_smoothness_run():
     model = _ggx_lambert()
     gt = _maps(4, 4)
@@ -257,7 +278,7 @@ def test_layered_metal_under_a_coat_converges_despite_a_dead_parameter():
 def test_sampling_operator_matches_gather_and_scatter():
     # the CSR sampling operator of the joint refinement against the explicit weighted gather / index_add,
     # with repeated texels inside a sample's footprint (as at a clamped map border)
-    from capture.solvers import _sampling_operator
+    from capture.fit.operators import sampling_operator
 
     g = torch.Generator().manual_seed(5)
     S, T, K, P = 50, 12, 4, 3
@@ -266,7 +287,7 @@ def test_sampling_operator_matches_gather_and_scatter():
     w = torch.rand(S, K, generator=g, dtype=torch.float64)
     x = torch.randn(T, P, generator=g, dtype=torch.float64)
     y = torch.randn(S, P, generator=g, dtype=torch.float64)
-    fwd, bwd = _sampling_operator(idx, w, T)
+    fwd, bwd = sampling_operator(idx, w, T)
     torch.testing.assert_close(fwd @ x, (x[idx] * w[..., None]).sum(1), rtol=0, atol=1e-14)
     ref = torch.zeros(T, P, dtype=torch.float64)
     for k in range(K):
@@ -277,11 +298,12 @@ def test_sampling_operator_matches_gather_and_scatter():
 @pytest.mark.parametrize("name", ["ggx-lambert", "gotanda2012-layered", "cook-torrance"])
 @pytest.mark.parametrize("canonical", [False, True])
 def test_jacobian_matches_central_differences_in_float64(name, canonical):
-    # _jacobian (reverse mode: one evaluation, a backward pass per colour channel) against central differences of
+    # jacobian (reverse mode: one evaluation, a backward pass per colour channel) against central differences of
     # the prediction, per sample and parameter column. The layered model's RGB absorption is not separable (its
     # channels act through the coat on every output channel), the others' RGB parameters are. A frozen column
     # (left out of the groups) must come back zero.
-    from capture.solvers import _groups, _jacobian
+    from capture.fit.layout import param_groups
+    from capture.fit.texel import jacobian
 
     model = materials.get(name)
     lay = Layout.of(model)
@@ -291,9 +313,9 @@ def test_jacobian_matches_central_differences_in_float64(name, canonical):
     obs = synthetic_observations(model, maps, samples_per_texel=6)
     canon = torch.cat([maps[s.name].reshape(9, -1) for s in lay.specs], -1)
     phi = (canon if canonical else lay.pack({k: v.reshape(9, -1) for k, v in maps.items()}))[obs.texel]
-    groups = _groups(lay)
+    groups = param_groups(lay)
     frozen = groups[-1]
-    pred, J = _jacobian(model, lay, obs, phi, groups[:-1], canonical=canonical)
+    pred, J = jacobian(model, lay, obs, phi, groups[:-1], canonical=canonical)
     unpack = lay.split if canonical else lay.unpack
     torch.testing.assert_close(pred.double(), obs.predict(model, unpack(phi)).double(), rtol=1e-12, atol=1e-14)
     h = 1e-6
@@ -311,10 +333,10 @@ def test_jacobian_matches_central_differences_in_float64(name, canonical):
 
 @pytest.mark.parametrize("name", ["ggx-lambert", "gotanda2012-layered", "nielsen-mixture"])
 def test_linear_solve_cost_is_the_data_term_at_the_solution(name):
-    # The l2 cost of _linear_solve comes from the normal equations (c0 − 2xᵀrhs + xᵀMx), not from a per-sample
+    # The l2 cost of linear_solve comes from the normal equations (c0 − 2xᵀrhs + xᵀMx), not from a per-sample
     # prediction; it must equal the data term re-rendered at the candidate it returns, clipped unknowns included
     # (random maps over the whole range, 5 % noise). Measured: ≤ 3e-10 on costs up to 7e3 (relative 5e-14).
-    from capture.solvers import _linear_solve, _separable, _texel_cost
+    from capture.fit.texel import linear_solve, separable, texel_cost
 
     model = materials.get(name)
     lay = Layout.of(model)
@@ -324,8 +346,8 @@ def test_linear_solve_cost_is_the_data_term_at_the_solution(name):
     obs = synthetic_observations(model, maps, samples_per_texel=8, noise=0.05)
     theta = lay.pack({k: v.reshape(36, -1) for k, v in maps.items()})
     lin = [s for s in lay.specs if s.linear]
-    cand, cost = _linear_solve(model, lay, obs, theta, lin, {s.name: _separable(model, s, obs.dtype) for s in lin},
+    cand, cost = linear_solve(model, lay, obs, theta, lin, {s.name: separable(model, s, obs.dtype) for s in lin},
                                "l2", 1.0)
-    direct = _texel_cost(obs, obs.predict(model, {k: v[obs.texel] for k, v in lay.unpack(cand).items()}), "l2", 1.0)
+    direct = texel_cost(obs, obs.predict(model, {k: v[obs.texel] for k, v in lay.unpack(cand).items()}), "l2", 1.0)
     torch.testing.assert_close(cost, direct, rtol=1e-10, atol=1e-9)
     assert float(direct.min()) > 1e-6                       # a real misfit in every texel (measured ≥ 1e-5)

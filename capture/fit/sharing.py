@@ -10,7 +10,7 @@ albedo, for exactly the flash-light setting), :func:`share_materials`
    (posterior std below threshold) — into ``candidates`` materials (k-means++ seeding, kornia's
    k-means; features are the canonical values divided by their observability thresholds);
 2. assigns every observed texel to one candidate (:func:`_assign`): for each candidate the
-   per-texel albedo is solved in closed form (:func:`capture.solvers._linear_solve`) with samples
+   per-texel albedo is solved in closed form (:func:`capture.fit.texel.linear_solve`) with samples
    weighted by the photo noise model, giving a χ² cost per texel and candidate; a texel takes the
    best candidate at the finest scale where it beats the second best by ``evidence`` (χ² units),
    scales being box sums over 1, 3, 9, … texels of each texel's excess χ² capped at ``cap`` — a
@@ -33,7 +33,7 @@ sharing" and "Session 4"): RMSE on all observed texels albedo / f0 / roughness 0
 prior, session 5); this stage takes ~5 s of the 20–24 (2 threads).
 
 The result initialises the joint refinement, whose edge-preserving prior
-(:func:`capture.solvers.refine_joint` ``sharing=``) then lets well-observed texels depart from their
+(:func:`capture.fit.joint.refine_joint` ``sharing=``) then lets well-observed texels depart from their
 material (smooth gradients) while the others keep it, and gives texels whose albedo the photos barely
 determine a neighbour's.
 """
@@ -51,9 +51,14 @@ from torch import Tensor
 
 from materials.model import Model
 
-from .observations import Observations
+from ..observations import Observations
+from .layout import ACC, MAX_STEP, Layout, from_canonical, param_groups
+from .noise import moderated_misfit, noise_sigma, photo_noise_ratio
+from .observability import pull_push, std_threshold
+from .texel import grid_values, jacobian, linear_solve, separable
 
-__all__ = ["share_materials", "unmatched_texels", "kmeans_pp"]
+__all__ = ["share_materials", "unmatched_texels", "kmeans_pp", "pooled_materials", "borrow_albedo",
+           "material_targets", "shared_default", "MIN_EVIDENCE"]
 
 
 #: χ² evidence (summed over the texels that prefer it, :func:`_supported`) below which a candidate material is
@@ -101,19 +106,15 @@ def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, itera
 def _chi2_observations(obs: Observations, noise: tuple[float, float]) -> Observations:
     """The observations with weights divided by the photo noise variance (mean over channels), so
     that costs are χ² values: ``σ = rel · max(|y|, floor · median y)`` as in :func:`posterior_std`."""
-    from .solvers import noise_sigma
-
     sig2 = noise_sigma(obs.radiance.double(), noise).square().mean(-1)
     return replace(obs, weight=(obs.weight.double() / sig2).to(obs.weight.dtype))
 
 
 def _per_texel_specs(model: Model, layout, dtype) -> tuple[list, dict[str, bool]]:
     """The parameters each texel keeps of its own (the diffuse albedo, when it enters linearly) and, for
-    :func:`capture.solvers._linear_solve`, whether each is a separable RGB parameter."""
-    from .solvers import _separable
-
+    :func:`capture.fit.texel.linear_solve`, whether each is a separable RGB parameter."""
     per_texel = [s for s in layout.specs if s.name == "albedo" and s.linear]
-    return per_texel, {s.name: s.channels == 3 and _separable(model, s, dtype) for s in per_texel}
+    return per_texel, {s.name: s.channels == 3 and separable(model, s, dtype) for s in per_texel}
 
 
 def _box_sum(x: Tensor, s: int) -> Tensor:
@@ -126,14 +127,12 @@ def _box_sum(x: Tensor, s: int) -> Tensor:
 
 def _misfit(costs: Tensor, residuals: Tensor, pooled: float | None = None, unknowns: int = 3) -> Tensor:
     """``[T]`` misfit s² ≥ 1 of each texel's best candidate: its χ² per residual — and, when the photos' noise
-    measured in image space exceeds the noise model (``pooled`` = :func:`capture.solvers.photo_noise_ratio` > 1),
-    at least the estimate moderated towards it (:func:`capture.solvers.moderated_misfit`, dof = residuals −
+    measured in image space exceeds the noise model (``pooled`` = :func:`capture.fit.noise.photo_noise_ratio` > 1),
+    at least the estimate moderated towards it (:func:`capture.fit.noise.moderated_misfit`, dof = residuals −
     ``unknowns``: the albedo's 3 channels are solved in closed form). A texel with one sample has no misfit of its
     own (its closed-form albedo fits that sample exactly), so under photo noise far above the noise model its χ²
     differences were taken at face value: with shot noise the gold's lower band (1 sample per texel at grazing
     angles) rejected the gold by 9–24 χ² and took dark dielectrics. Unchanged on noise-free photos."""
-    from .solvers import moderated_misfit
-
     best = costs.min(0).values
     return torch.maximum((best / residuals.clamp_min(1)).clamp_min(1.0),
                          moderated_misfit(best, residuals - unknowns, pooled))
@@ -172,7 +171,7 @@ def _assign(costs: Tensor, observed: Tensor, H: int, W: int, evidence: float, ca
             explains worse than the noise model (χ²/residuals = s² > 1: bilinear mixing at an edge, a
             material no candidate matches) has its excesses divided by s².
         prior: ``[K, T]`` extra cost added to the (deflated) excesses, e.g. :func:`_albedo_prior`.
-        pooled: the photos' noise against the noise model (:func:`capture.solvers.photo_noise_ratio`), which
+        pooled: the photos' noise against the noise model (:func:`capture.fit.noise.photo_noise_ratio`), which
             the misfit deflation moderates towards (:func:`_misfit`).
     Returns:
         ``(label [T], scale [T])`` — the box size that decided each texel (0 where unobserved).
@@ -266,7 +265,7 @@ def pooled_materials(model: Model, layout, chi: Observations, pool: Tensor, *, b
 
     A texel whose samples never show a highlight's peak cannot tell f0 from roughness (its per-texel fit is no
     anchor), but a few neighbours of one material seen from different angles together can: a lobe shared by the
-    tile, an albedo per texel. For each of ``grid`` roughness values (:func:`capture.solvers._grid_values`)
+    tile, an albedo per texel. For each of ``grid`` roughness values (:func:`capture.fit.texel.grid_values`)
     the tile's f0 and its texels' albedos are the weighted least-squares solution — the albedos eliminated
     per texel (Schur complement), then f0 per tile and channel, both clipped to their range — from per-texel
     sufficient statistics, so one roughness value costs three model evaluations on the pool's samples. Each
@@ -284,14 +283,12 @@ def pooled_materials(model: Model, layout, chi: Observations, pool: Tensor, *, b
         ``(materials [B, Ps] canonical shared values in layout order, cost [B] χ² of the tile's pool texels at
         them, tile [T] index of each texel's tile)``, or None. B = ⌈H / block⌉ · ⌈W / block⌉.
     """
-    from .solvers import ACC, _grid_values, _separable
-
     per_texel = [s for s in layout.specs if s.name == "albedo" and s.linear]
     shared = [s for s in layout.specs if s not in per_texel]
     lin = [s for s in shared if s.linear]
     non = [s for s in shared if not s.linear]
     if (len(per_texel) != 1 or len(lin) != 1 or len(non) != 1 or non[0].channels != 1
-            or any(s.channels != 3 or not _separable(model, s, chi.dtype) for s in per_texel + lin)):
+            or any(s.channels != 3 or not separable(model, s, chi.dtype) for s in per_texel + lin)):
         return None
     alb, f0s, rough = per_texel[0], lin[0], non[0]
     H, W = chi.map_size
@@ -317,7 +314,7 @@ def pooled_materials(model: Model, layout, chi: Observations, pool: Tensor, *, b
     best_f0 = torch.zeros(nb, 3, dtype=ACC, device=dev)
     best_r = torch.zeros(nb, dtype=ACC, device=dev)
     with torch.no_grad():
-        for r in _grid_values(rough, grid, ACC, dev).tolist():
+        for r in grid_values(rough, grid, ACC, dev).tolist():
             p = {s.name: const(s, s.default) for s in layout.specs}
             p.update({alb.name: const(alb, 0.0), f0s.name: const(f0s, 0.0), rough.name: const(rough, r)})
             b = sub.predict(model, p).to(ACC)
@@ -385,7 +382,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
 
     Args:
         model: the material model; obs: the observations (nearest texel of each sample is used).
-        layout: the solver's :class:`capture.solvers.Layout` of ``model``.
+        layout: the solver's :class:`capture.fit.layout.Layout` of ``model``.
         theta: ``[T, P]`` per-texel fit (θ parameterisation, float64).
         anchors: ``[T]`` bool, texels whose shared parameters the per-texel fit determined.
         candidates: number of candidate materials (k-means clusters of the anchors), ≥ 1.
@@ -424,8 +421,6 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         Unchanged θ (``info["materials"] = []``) when the model has nothing to share or there are
         no anchors.
     """
-    from .solvers import ACC, _groups, _linear_solve, photo_noise_ratio, std_threshold
-
     t0 = time.perf_counter()
     if candidates < 1 or rounds < 1 or refit_iterations < 0 or not (evidence >= 0 and math.isfinite(evidence)):
         raise ValueError(f"share_materials: need candidates ≥ 1, rounds ≥ 1, refit_iterations ≥ 0 and a finite "
@@ -471,12 +466,12 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         for k in range(m.shape[0]):
             th = theta.clone()
             th[:, scols] = m[k, scols]
-            out.append(_linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0))
+            out.append(linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0))
         return torch.stack([o[0] for o in out]), torch.stack([o[1] for o in out])   # [k, T, P], [k, T]
 
     mat = as_materials(centres)
     chi = _chi2_observations(obs, noise)
-    groups = [c for c in _groups(layout) if all(x in scols for x in c)]
+    groups = [c for c in param_groups(layout) if all(x in scols for x in c)]
     y, w = chi.radiance.to(ACC), chi.weight.to(ACC)
     label = torch.zeros(T, dtype=torch.long, device=dev)
     residuals = 3.0 * torch.bincount(obs.texel, minlength=T).to(ACC)
@@ -532,7 +527,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
             mat = _refit(model, layout, chi, theta, mat, label, scols, groups, y, w, refit_iterations)
         th = theta.clone()
         th[:, scols] = mat[label][:, scols]
-        th, material_cost = _linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
+        th, material_cost = linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
         # anchors keep their own fit: their samples determined it, and a material's smooth variation
         # (a roughness gradient) lives there
         theta = torch.where(anchors[:, None], theta_in, th)
@@ -560,10 +555,8 @@ def unmatched_texels(model: Model, obs: Observations, layout, theta: Tensor, inf
     by the misfit s² = max(1, χ²_best / residuals) as in :func:`_assign`. On the default scene (a good
     material set) 4 % of the observed texels are unmatched — stripe borders, whose nearest-texel fit
     absorbs the bilinear mixing, and the roughness gradient; on a layered scene whose metals gave no
-    anchor, 37 %. :func:`capture.solvers.solve_fast` uses them only when the sharing has failed.
+    anchor, 37 %. :func:`capture.fit.fast.solve_fast` uses them only when the sharing has failed.
     """
-    from .solvers import _linear_solve
-
     if "material_cost" not in info:
         raise ValueError("unmatched_texels: info must come from share_materials (it has no 'material_cost')")
     if theta.dim() != 2 or theta.shape[0] != obs.n_texels or info["material_cost"].shape != (obs.n_texels,):
@@ -573,7 +566,7 @@ def unmatched_texels(model: Model, obs: Observations, layout, theta: Tensor, inf
     per_texel, sep = _per_texel_specs(model, layout, obs.dtype)
     chi = _chi2_observations(obs, noise)
     with torch.no_grad():
-        _, own_cost = _linear_solve(model, layout, chi, theta, per_texel, sep, "l2", 1.0)
+        _, own_cost = linear_solve(model, layout, chi, theta, per_texel, sep, "l2", 1.0)
     mcost = info["material_cost"]
     residuals = 3.0 * torch.bincount(obs.texel, minlength=theta.shape[0]).to(mcost)
     s2 = (torch.minimum(own_cost, mcost) / residuals.clamp_min(1)).clamp_min(1.0)
@@ -588,8 +581,6 @@ def borrow_albedo(layout, theta: Tensor, label: Tensor, own: Tensor, H: int, W: 
     Their own data are a few percent of a neighbour's sample, so a neighbour's error δ moves them by
     ~δ / weight; measured on the default scene: albedo RMSE on all observed texels 0.0173 → 0.0151
     against a pull-push from texels of any material."""
-    from .solvers import from_canonical, pull_push
-
     borrowed = (label >= 0) & ~own
     theta = theta.clone()
     if not bool(borrowed.any()) or not bool(own.any()):
@@ -610,7 +601,6 @@ def borrow_albedo(layout, theta: Tensor, label: Tensor, own: Tensor, H: int, W: 
 
 
 def _from_canon(spec, x: Tensor) -> Tensor:
-    from .solvers import from_canonical
     return from_canonical(spec, x.clamp(spec.low + 1e-6 * min(spec.high - spec.low, 1.0),
                                         spec.high - 1e-6 * min(spec.high - spec.low, 1.0)))
 
@@ -625,8 +615,6 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
     the second), one of the shot-noise scene's still drops 2 % at the fourth. Sharing stage 5.2 → 3.5 s on
     the default scene, 5.0 → 4.3 s with shot noise, maps unchanged to 4 decimals (docs/reconstruction.md,
     "Session 11")."""
-    from .solvers import ACC, MAX_STEP, _jacobian
-
     K = mat.shape[0]
     Ps = len(scols)
     dev = y.device
@@ -650,7 +638,7 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
             keep = active[lab_all]
             sub, lab_s, ys, ws, th_s = obs.select(keep), lab_all[keep], y[keep], w[keep], theta[obs.texel[keep]]
         start = cur
-        pred, J = _jacobian(model, layout, sub, per_sample(mat), groups)
+        pred, J = jacobian(model, layout, sub, per_sample(mat), groups)
         r = ys - pred
         Js = J[:, :, scols]
         A = torch.zeros(K, Ps, Ps, dtype=ACC, device=dev).index_add(
@@ -676,3 +664,26 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
         if not bool(active.any()):
             break
     return mat
+
+
+def material_targets(layout: Layout, canon: Tensor, labels: Tensor, anchors: Tensor) -> Tensor:
+    """``canon [T, P]`` with the shared parameters (:func:`shared_default`) of every labelled texel replaced by its
+    material's median over that material's anchors (over all its texels where it has no anchor): the sharing's
+    materials re-estimated from the current fit. Unlabelled texels (``labels`` −1) keep their own values."""
+    out = canon.clone()
+    cols = [c for s_, o in zip(layout.specs, layout.offsets, strict=True) if s_.name in shared_default(layout)
+            for c in range(o, o + s_.channels)]
+    if not cols:
+        return out
+    for k in torch.unique(labels[labels >= 0]).tolist():
+        member = labels == k
+        pick = member & anchors if bool((member & anchors).any()) else member
+        out[member.nonzero()[:, 0][:, None], torch.tensor(cols, device=canon.device)] = \
+            canon[pick][:, cols].median(0).values.to(out.dtype)
+    return out
+
+
+def shared_default(layout: Layout) -> list[str]:
+    """Parameters a material shares (:func:`capture.fit.sharing.share_materials`; the anchors are the texels that
+    determine all of them): every one but the diffuse albedo, which is a texture."""
+    return [s.name for s in layout.specs if s.name != "albedo"]

@@ -1,0 +1,257 @@
+"""The fast path built for known geometry (:func:`solve_fast`): the orchestration of the per-texel stages
+(:mod:`capture.fit.texel`), the reflectance sharing (:mod:`capture.fit.sharing`), the joint refinement
+(:mod:`capture.fit.joint`) and the finalisation (:mod:`capture.fit.observability`)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+
+import torch
+from torch import Tensor
+
+from materials.model import Model
+
+from ..observations import Observations
+from .joint import refine_joint
+from .layout import ACC, FitResult, Layout, SolverError, from_canonical, param_groups
+from .noise import check_noise, default_delta, noise_floor
+from .observability import anchors_at, determined, finalize, find_anchors, posterior_std, pull_push
+from .options import FitOptions
+from .sharing import material_targets, share_materials, shared_default, unmatched_texels
+from .texel import (
+    BILINEAR_LM_MIN,
+    BILINEAR_LM_TOL,
+    check_inputs,
+    closed_form_init,
+    data_cost,
+    init_theta,
+    per_texel_lm,
+    separable,
+)
+
+__all__ = ["ANCHOR_RETRY_FACTOR", "MISFIT_RETRY", "FOOTPRINT_STEPS", "FOOTPRINT_FREE_STEPS",
+           "FOOTPRINT_TEXTURE_PRIOR", "solve_fast"]
+
+
+#: When even the last factor of :data:`ANCHOR_LOOSENING` leaves fewer than :data:`ANCHOR_MIN_FRACTION` anchors, the
+#: materials seeded from so few are a guess, and when the joint refinement they start then misses the photos by more
+#: than ``MISFIT_RETRY`` × their noise (:func:`noise_floor`), the sharing and the refinement run again from the anchors
+#: at ``ANCHOR_RETRY_FACTOR`` × the thresholds, and the fit with the lower data cost is kept (``info["share_retry"]``).
+#: Measured (docs/reconstruction.md, "Session 14"): the default-size layered scene with 3 000 e⁻ shot noise, 18
+#: anchors of 46 264 at × 10, data cost 36 × its noise floor (worst view 35.6 dB) → 393 anchors at × 30, 0.25 × the
+#: floor (62.5 dB); the noise-free one misses by 4.7 × (the floor of the 1 % noise model) and keeps its fit.
+ANCHOR_RETRY_FACTOR = 30.0
+MISFIT_RETRY = 10.0
+
+
+#: Joint LM steps of the final solve on the photos' pixel footprints (:func:`solve_fast` ``footprints``). It starts
+#: from the pixel-centre solution, which is close wherever texels are larger than pixels, so a few steps converge;
+#: each is stopped early when the cost drops by less than 1e-6 (relative).
+FOOTPRINT_STEPS = 6
+#: Untied footprint steps run first when the reflectance sharing anchors the materials: the sharing's materials come
+#: from the pixel-centre fit, biased where pixels mix texels or highlights, so the material tie (``anchor_weight``)
+#: would hold that bias. These steps run without it, the materials are re-estimated from the anchors' footprint fits
+#: (median per material, :func:`material_targets`), and the :data:`FOOTPRINT_STEPS` tied steps follow. Measured on
+#: the Mitsuba Lambert + GGX sphere (tests/fixtures/mitsuba): χ² per residual 1.29 → 0.55; RMSE on well-lit
+#: highlight texels f0 0.016 → 0.011, roughness r 0.136 → 0.088 (12 tied steps without re-estimation: 0.52,
+#: 0.015 / 0.102). Weighting the pixels by the noise model's 1/σ² instead reached χ² 0.31, below the truth's 0.37,
+#: with worse roughness (0.134): the photos leave the faint broad lobes' roughness free.
+FOOTPRINT_FREE_STEPS = 6
+#: Weight (the ``sharing`` scale of :func:`refine_joint`) of the edge-preserving neighbour prior in the footprint
+#: solve when no reflectance sharing runs (a Lambert model, or no material to share). Texels smaller than the pixels
+#: that see them are left free by the photos (the operator mixes them), and without a prior they keep the noise of
+#: the pixel-centre stages. Measured on the Mitsuba Lambert torus (tests/fixtures/mitsuba), RMSE of the albedo on
+#: well-lit texels / on those ≥ 1 pixel, with weights 0 / 1e-4 / 3e-4 / 1e-3 / 3e-3 / 1e-2: 0.0350 / 0.0167 / 0.0135 /
+#: 0.0119 / 0.0117 / 0.0122 and 0.0012 / 0.0012 / 0.0012 / 0.0012 / 0.0013 / 0.0018 (χ² per residual 0.26 → 0.18 at
+#: 1e-3); the shared models' weight (``sharing``, 1) gave χ² 89 there. On photos blurred by a Gaussian PSF
+#: (σ = 0.7 px) the prior is what makes the deconvolution stable: albedo 0.117 without it, 0.052 at 1e-3.
+FOOTPRINT_TEXTURE_PRIOR = 1e-3
+
+
+def solve_fast(model: Model, obs: Observations, options: FitOptions | None = None, *,
+               init: Mapping[str, Tensor] | None = None, footprints=None,
+               progress: Callable[[str, int, float], None] | None = None, **overrides) -> FitResult:
+    """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
+
+    Objective: ``Σ_s weight_s Σ_c ρ(y_sc − L_sc)`` with nearest-texel sampling (each sample reads
+    the texel containing its UV), so texels are independent and every texel has its own damping
+    λ_t and step acceptance. One iteration costs one evaluation with three backward passes (the
+    Jacobian, :func:`jacobian`) plus one trial evaluation.
+
+    Args:
+        model: the material model; obs: the observations.
+        options: the solver's options (:class:`capture.fit.options.FitOptions`; None = the defaults).
+        **overrides: options by name (``loss="huber"``), replacing those of ``options``; an unknown name is a
+            :class:`SolverError` that lists the valid ones.
+        init: optional starting maps ``name → [H, W, C]`` (skips the grid for the nonlinear ones
+            only if grid ≤ 1).
+        footprints: :class:`capture.footprint.PixelFootprints` of the same photos: after the stages above (which
+            treat each pixel as one ray through its centre and give the starting maps), ``footprint_iterations``
+            more joint LM steps fit the photos' *pixels* as area averages of their sub-pixel samples
+            (:func:`refine_joint` with ``footprints``), with the same prior; the posterior std and the
+            observability are then judged through the footprint operator (:func:`posterior_std`). None = the
+            pixel-centre model only (photos the fit's own pixel-centre renderer made).
+        progress: callback ``(stage, iteration, cost)``.
+
+    Returns:
+        :class:`FitResult` (``info`` holds grid/LM times and the accepted-step fractions).
+    """
+    t0 = time.perf_counter()
+    opts = FitOptions.of(options, **overrides)
+    loss, delta, iterations, grid, refine = opts.loss, opts.delta, opts.iterations, opts.grid, opts.refine
+    schedule, smoothness, tol, observable_std = opts.schedule, opts.smoothness, opts.tol, opts.observable_std
+    noise, reproject, sampling = opts.noise, opts.reproject, opts.sampling
+    joint_iterations, cg_iterations = opts.joint_iterations, opts.cg_iterations
+    fill_before_joint = opts.fill_before_joint
+    share, candidates, sharing, sharing_albedo = opts.share, opts.candidates, opts.sharing, opts.sharing_albedo
+    anchor_weight, pooled, footprint_iterations = opts.anchor_weight, opts.pooled, opts.footprint_iterations
+    check_inputs(model, obs, loss)
+    min_iterations, lm_tol = 0, tol
+    if iterations is None:
+        iterations = 10 if sampling == "bilinear" else 40
+        if sampling == "bilinear":
+            min_iterations, lm_tol = BILINEAR_LM_MIN, max(tol, BILINEAR_LM_TOL)
+    joint = sampling == "bilinear" and joint_iterations != 0
+    share = joint if share is None else bool(share)
+    if grid is None:
+        grid = 16 if share else 32
+    delta = default_delta(obs, loss, delta)
+    layout = Layout.of(model)
+    T, H, W = obs.n_texels, *obs.map_size
+    theta = init_theta(model, layout, obs, init).to(ACC)
+    groups = param_groups(layout)
+    t_grid = time.perf_counter()
+    lin_specs = [s for s in layout.specs if s.linear]
+    sep = {s.name: (s.channels == 3 and separable(model, s, obs.dtype)) for s in lin_specs}
+    if sampling == "bilinear" and obs.bilinear_index is None:
+        raise SolverError("sampling='bilinear' needs observations built with bilinear=True (observe_views)")
+    noise = check_noise(noise)
+    theta, info = closed_form_init(model, layout, obs, theta, grid, loss, delta, sep, refine,
+                                    fixed=tuple(init or ()))
+    info["grid_s"] = time.perf_counter() - t_grid
+    info["options"] = opts.to_dict()
+    theta, history, lm_info = per_texel_lm(model, obs, layout, theta, groups, loss=loss, delta=delta,
+                                           iterations=iterations, schedule=schedule, smoothness=smoothness,
+                                           reproject=reproject, sep=sep, lm_tol=lm_tol,
+                                           min_iterations=min_iterations, progress=progress)
+    info.update(lm_info)
+    it = lm_info["lm_iterations"]
+    if share or (joint and fill_before_joint):
+        canon = torch.cat([layout.unpack(theta)[s.name] for s in layout.specs], -1)
+        std, observed_n, _ = posterior_std(model, layout, obs, canon, groups, loss=loss, delta=delta, noise=noise)
+        good = determined(layout, std, observed_n, observable_std)
+    if share:
+        shared_names = shared_default(layout)
+        anchors, factor, scarce = find_anchors(layout, std, observed_n, shared_names, observable_std)
+        theta_texel = theta
+        theta, sinfo = share_materials(model, obs, layout, theta, anchors, candidates=candidates, noise=noise,
+                                       pool_block=pooled)
+        material_of = (sinfo.get("labels"), anchors)
+        info.update(share_s=sinfo["share_s"], materials=sinfo["materials"], shared=sinfo["shared"],
+                    share_anchors=int(anchors.sum()), share_anchor_factor=factor, share_pruned=sinfo.get("pruned", 0),
+                    pooled_tiles=sinfo.get("pooled_tiles", 0), photo_noise_ratio=sinfo.get("photo_noise_ratio"))
+        if progress is not None:
+            progress("share", it, history[-1])
+        # nothing to share from (no texel determined the shared parameters, or the model has none):
+        # fall back to the fill, as without sharing
+        share = bool(sinfo["materials"])
+    if joint and fill_before_joint and not share:
+        # per-texel parameters the photos do not determine vary wildly from texel to texel; under
+        # bilinear sampling they would mix into the neighbours' predictions, so they are replaced
+        # by pull-push fills of the observable ones before the joint refinement
+        for s_, o in zip(layout.specs, layout.offsets, strict=True):
+            sl = slice(o, o + s_.channels)
+            ok = good[s_.name].reshape(H, W)
+            if bool(ok.any()) and not bool(ok.all()):
+                filled_c = pull_push(canon[:, sl].reshape(H, W, -1), ok).reshape(T, -1)
+                theta[:, sl] = from_canonical(s_, filled_c)
+    if joint:
+        # more steps are safe once the sharing's proposal anchors the material parameters (anchor_weight)
+        steps = joint_iterations if joint_iterations is not None else (6 if share else 3)
+        cg_steps = cg_iterations if cg_iterations is not None else (30 if share else 25)
+
+        def joint_from(start):
+            return refine_joint(model, obs, layout, start, groups, loss=loss, delta=delta,
+                                iterations=steps, cg_iterations=cg_steps,
+                                sharing=sharing if share else 0.0, progress=progress,
+                                sharing_params=None if sharing_albedo else shared_default(layout),
+                                noise=noise, noise_adaptive=("albedo",),
+                                anchor_weight=anchor_weight if share else 0.0)
+
+        def shared_joint(shared_start, sinfo):
+            theta, jinfo = joint_from(shared_start)
+            # the sharing is a proposal. When the refinement it seeds fits the photos worse than the per-texel fit
+            # did, the materials miss part of the object (a layered scene whose metals gave no anchor: every metal
+            # texel took a dielectric, worst view 27 dB): the texels whose own samples reject their material
+            # keep their own fit, the refinement runs again, and the lower data cost wins
+            texel_cost = data_cost(model, layout, obs, theta_texel, sampling=sampling, loss=loss, delta=delta)
+            if jinfo["joint_data_cost"] > texel_cost:
+                own = unmatched_texels(model, obs, layout, theta_texel, sinfo, noise=noise)
+                retry, rinfo = joint_from(torch.where(own[:, None], theta_texel, shared_start))
+                fallback = rinfo["joint_data_cost"] < jinfo["joint_data_cost"]
+                report = {"per_texel_data_cost": texel_cost, "shared_data_cost": jinfo["joint_data_cost"],
+                          "own_fit_texels": int(own.sum()), "fallback_data_cost": rinfo["joint_data_cost"],
+                          "kept": "fallback" if fallback else "shared"}
+                seconds = jinfo["joint_s"] + rinfo["joint_s"]
+                if fallback:
+                    theta, jinfo = retry, rinfo
+                jinfo["joint_s"] = seconds
+                return theta, jinfo, report
+            return theta, jinfo, None
+
+        if share:
+            theta, jinfo, fallback_report = shared_joint(theta, sinfo)
+            floor = noise_floor(obs, noise, info.get("photo_noise_ratio"), loss, delta) if scarce else math.inf
+            if jinfo["joint_data_cost"] > MISFIT_RETRY * floor:
+                anchors2 = anchors_at(layout, std, observed_n, shared_names, observable_std, ANCHOR_RETRY_FACTOR)
+                start2, sinfo2 = share_materials(model, obs, layout, theta_texel, anchors2, candidates=candidates,
+                                                 noise=noise, pool_block=pooled)
+                retry = {"noise_floor": floor, "data_cost": jinfo["joint_data_cost"], "anchors": int(anchors2.sum()),
+                         "factor": ANCHOR_RETRY_FACTOR, "share_s": sinfo2["share_s"], "kept": "first"}
+                if sinfo2["materials"]:
+                    theta2, jinfo2, fallback2 = shared_joint(start2, sinfo2)
+                    retry.update(retry_data_cost=jinfo2["joint_data_cost"], joint_s=jinfo2["joint_s"])
+                    if jinfo2["joint_data_cost"] < jinfo["joint_data_cost"]:
+                        retry["kept"] = "retry"
+                        theta, jinfo, fallback_report = theta2, jinfo2, fallback2
+                        material_of = (sinfo2.get("labels"), anchors2)
+                        info.update(materials=sinfo2["materials"], share_anchors=int(anchors2.sum()),
+                                    share_anchor_factor=ANCHOR_RETRY_FACTOR, share_pruned=sinfo2.get("pruned", 0),
+                                    pooled_tiles=sinfo2.get("pooled_tiles", 0))
+                info["share_retry"] = retry
+            if fallback_report is not None:
+                info["sharing_fallback"] = fallback_report
+        else:
+            theta, jinfo = joint_from(theta)
+        info.update(jinfo)
+        history.append(jinfo["joint_history"][-1])
+    if footprints is not None:
+        steps = FOOTPRINT_STEPS if footprint_iterations is None else int(footprint_iterations)
+        if steps > 0:
+            def footprint_steps(start, n, weight, target=None):
+                return refine_joint(model, obs, layout, start, groups, loss=loss, delta=delta, iterations=n,
+                                    cg_iterations=cg_iterations if cg_iterations is not None else 30,
+                                    sharing=sharing if share else FOOTPRINT_TEXTURE_PRIOR, progress=progress,
+                                    sharing_params=None if sharing_albedo else shared_default(layout),
+                                    noise=noise, noise_adaptive=("albedo",), anchor_weight=weight,
+                                    footprints=footprints, anchor_target=target)
+
+            if share and anchor_weight > 0 and material_of[0] is not None and FOOTPRINT_FREE_STEPS > 0:
+                # the sharing's materials were estimated on the pixel-centre residuals, biased wherever a pixel
+                # mixes texels or a highlight; the first steps run untied, the materials are re-estimated from
+                # the anchors' footprint fits, and the tie resumes to those
+                theta, finfo_free = footprint_steps(theta, FOOTPRINT_FREE_STEPS, 0.0)
+                target = material_targets(layout, torch.cat([layout.unpack(theta)[s_.name] for s_ in layout.specs],
+                                                             -1), *material_of)
+                theta, finfo = footprint_steps(theta, steps, anchor_weight, target)
+                finfo["joint_s"] += finfo_free["joint_s"]
+                finfo["joint_history"] = finfo_free["joint_history"] + finfo["joint_history"][1:]
+            else:
+                theta, finfo = footprint_steps(theta, steps, anchor_weight if share else 0.0)
+            info.update({f"footprint_{k.removeprefix('joint_')}": v for k, v in finfo.items()})
+            history.append(finfo["joint_history"][-1])
+    return finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,
+                     noise=noise, history=history, iterations=it, t0=t0, solver="fast", info=info,
+                     sampling=sampling, keep_unobservable=share, footprints=footprints)

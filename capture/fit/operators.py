@@ -1,0 +1,120 @@
+"""Sparse operators of the joint solves: the bilinear sampling footprint (samples × texels) and the photos'
+pixel footprints (pixels × texels, :class:`PixelOperator`)."""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+from torch import Tensor
+
+from materials.model import Model
+
+from .layout import ACC, Layout, SolverError
+from .texel import jacobian
+
+__all__ = ["sampling_operator", "PixelOperator"]
+
+
+def sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True) -> tuple[Tensor | None, Tensor]:
+    """Sparse CSR matrices ``[S, T]`` (None unless ``forward``) and ``[T, S]`` of the sampling footprint: row s
+    holds sample s's weights at its texels ``idx [S, K]`` (``weight [S, K]``); the transpose is built
+    directly, not transposed."""
+    S, K = idx.shape
+    rows = torch.arange(S, device=idx.device).repeat_interleave(K)
+    cols, vals = idx.reshape(-1), weight.reshape(-1)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        fwd = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (S, T)).coalesce().to_sparse_csr() \
+            if forward else None
+        bwd = torch.sparse_coo_tensor(torch.stack([cols, rows]), vals, (T, S)).coalesce().to_sparse_csr()
+    return fwd, bwd
+
+
+def _csr(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, shape).coalesce().to_sparse_csr()
+
+
+class PixelOperator:
+    """The sparse pixel × texel operator of :class:`capture.footprint.PixelFootprints`, built once.
+
+    A pixel's prediction is ``Σ_{s ∈ i} a_s L(p_s)`` with ``p_s = Σ_k w_sk p_k`` the bilinear read of sample s
+    (share ``a_s``). Linearised at the current maps, pixel i depends on texel t through the block
+    ``C_it = Σ_{s ∈ i, k: idx_sk = t} a_s w_sk J_s`` (3 × P, ``J_s`` the sample's Jacobian with respect to its
+    canonical parameters): one *entry* per (pixel, texel) pair the footprints touch, stored flat
+    (``e_pix``, ``e_tex``). The Gauss-Newton matrix-vector product is then two gathers, two batched 3 × P
+    products and two sparse sums (CSR), never the P·T × P·T matrix; the per-texel P × P blocks
+    ``Σ_i C_itᵀ W_i C_it`` (the preconditioner, and the posterior's information) are exact.
+    """
+
+    def __init__(self, fp, T: int):
+        so = fp.samples
+        if so.bilinear_index is None:
+            raise SolverError("pixel footprints need bilinear sample weights (observe_footprints builds them)")
+        self.fp, self.T = fp, T
+        self.R, S = fp.n_pixels, so.n_samples
+        idx, bw = so.bilinear_index, so.bilinear_weight.to(ACC)
+        self.coef = bw * fp.share.to(ACC)[:, None]                                  # [S, 4]
+        key = fp.group[:, None] * T + idx
+        ekey, e_of = torch.unique(key.reshape(-1), return_inverse=True)
+        self.e_of = e_of.reshape(S, -1)
+        self.e_pix, self.e_tex = ekey // T, ekey % T
+        E = int(ekey.numel())
+        self.E = E
+        ar = torch.arange(E, device=idx.device)
+        ones = torch.ones(E, dtype=ACC, device=idx.device)
+        self.pix_op = _csr(self.e_pix, ar, ones, (self.R, E))                        # entries → pixels
+        self.tex_op = _csr(self.e_tex, ar, ones, (T, E))                             # entries → texels
+        s_ar = torch.arange(S, device=idx.device)
+        # sample-corner → entry, one operator per bilinear corner (4 sparse products instead of one [4S, 3P] copy)
+        self.corner_ops = [_csr(self.e_of[:, j], s_ar, self.coef[:, j], (E, S)) for j in range(idx.shape[1])]
+        self.gather_op, _ = sampling_operator(idx, bw, T)
+        self.group_op = _csr(fp.group, s_ar, fp.share.to(ACC), (self.R, S))          # samples → pixels
+        # each entry's share of its pixel (Σ over a pixel's entries = 1): how much of the pixel the texel is
+        self.e_share = torch.zeros(E, dtype=ACC, device=idx.device).index_add_(0, self.e_of.reshape(-1),
+                                                                                self.coef.reshape(-1))
+        self.y = fp.radiance.to(ACC)
+
+    def observed(self) -> Tensor:
+        """``[T]`` bool: texels some kept pixel reads with a positive weight."""
+        seen = torch.zeros(self.T, dtype=torch.bool, device=self.y.device)
+        seen[self.e_tex[self.e_share > 0]] = True
+        return seen
+
+    def dominance(self) -> Tensor:
+        """``[T]`` the largest share any kept pixel takes from each texel (0 where none reads it)."""
+        return torch.zeros(self.T, dtype=ACC, device=self.y.device).scatter_reduce(
+            0, self.e_tex, self.e_share, "amax", include_self=True)
+
+    def predict(self, model: Model, layout: Layout, canon: Tensor) -> Tensor:
+        """Pixel predictions ``[R, 3]`` of canonical texel parameters ``canon [T, P]``."""
+        so = self.fp.samples
+        with torch.no_grad():
+            rad = so.predict(model, layout.split((self.gather_op @ canon).to(so.dtype))).to(ACC)
+        return self.group_op @ rad
+
+    def linearise(self, model: Model, layout: Layout, canon: Tensor, groups) -> tuple[Tensor, Tensor]:
+        """``(pred [R, 3], C [E, 3, P])`` at ``canon [T, P]``."""
+        P = canon.shape[1]
+        pred_s, J = jacobian(model, layout, self.fp.samples, self.gather_op @ canon, groups, canonical=True)
+        Jf = J.reshape(J.shape[0], 3 * P)
+        C = sum(op @ Jf for op in self.corner_ops).reshape(self.E, 3, P)
+        return self.group_op @ pred_s, C
+
+    def normal(self, C: Tensor, w: Tensor, wr: Tensor) -> tuple[Tensor, Tensor]:
+        """``(Jᵀ W r [T, P], blocks Σ_i C_itᵀ W_i C_it [T, P, P])`` with residual weights ``w [R, 3]`` and
+        ``wr = w·r [R, 3]``."""
+        P = C.shape[-1]
+        g = self.tex_op @ torch.einsum("ecp,ec->ep", C, wr[self.e_pix])
+        B = (self.tex_op @ torch.einsum("ecp,ec,ecq->epq", C, w[self.e_pix], C).reshape(self.E, P * P))
+        return g, B.reshape(self.T, P, P)
+
+    def apply(self, C: Tensor, u: Tensor) -> Tensor:
+        """``J u`` ``[R, 3]`` for texel updates ``u [T, P]``."""
+        return self.pix_op @ torch.bmm(C, u[self.e_tex][:, :, None])[..., 0]
+
+    def apply_t(self, C: Tensor, v: Tensor) -> Tensor:
+        """``Jᵀ v`` ``[T, P]`` for pixel values ``v [R, 3]``."""
+        return self.tex_op @ torch.bmm(v[self.e_pix][:, None, :], C)[:, 0]

@@ -1,0 +1,530 @@
+"""The per-texel stages of :func:`capture.fit.fast.solve_fast`: input checks, the starting θ, the sample Jacobian and
+costs, the closed-form initialisation of the linear parameters and the per-texel Levenberg-Marquardt.
+
+With nearest-texel sampling each texel is an independent least-squares problem in P ≤ ~10 unknowns, so
+
+1. parameters a model declares linear (``ParamSpec.linear``: albedo, f0 under Schlick-type
+   Fresnel, Nielsen's k_s) are solved in *closed form*, per texel, for a grid of values of the
+   main nonlinear parameter (roughness); the best grid point per texel initialises
+   (:func:`closed_form_init`)
+2. Levenberg-Marquardt on all parameters, vectorised over all texels (:func:`per_texel_lm`): residuals of all
+   samples, the per-sample Jacobian by reverse-mode AD (:func:`jacobian`), per-texel normal equations
+   ``JᵀWJ [T, P, P]`` and ``JᵀWr [T, P]`` accumulated with ``index_add``, a batched damped solve, and per-texel
+   step acceptance with per-texel damping λ_t.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from materials.geometry import Angles
+from materials.model import Model, SumModel
+from materials.params import ParamSpec
+
+from ..observations import Observations
+from .layout import ACC, MAX_STEP, Layout, SolverError, bounded, from_canonical
+from .noise import check_loss, irls_weights, robust_rho
+
+__all__ = ["BILINEAR_LM_TOL", "BILINEAR_LM_MIN", "check_inputs", "init_theta", "separable", "jacobian",
+           "sample_cost", "texel_cost", "weighted_cost", "data_cost", "grid_values", "linear_solve",
+           "closed_form_init", "per_texel_lm"]
+
+
+def check_inputs(model: Model, obs: Observations, loss: str) -> None:
+    if not isinstance(model, Model):
+        raise SolverError(f"model must be a materials.Model (materials.get(name)), got {type(model).__name__}")
+    if not isinstance(obs, Observations):
+        raise SolverError(f"obs must be capture.observations.Observations, got {type(obs).__name__}")
+    if obs.n_samples == 0:
+        raise SolverError("no observations to fit (0 valid samples)")
+    if not model.params:
+        raise SolverError(f"model '{model.name}' has no parameters to fit")
+    check_loss(loss)
+
+
+def init_theta(model: Model, layout: Layout, obs: Observations, init: Mapping[str, Tensor] | None) -> Tensor:
+    T, dt, dev = obs.n_texels, obs.dtype, obs.device
+    params = model.defaults((T,), device=dev, dtype=dt)
+    if init is not None:
+        for k, m in init.items():
+            if k not in params:
+                raise SolverError(f"init has map '{k}' that model '{model.name}' does not use; it uses "
+                                  f"{list(model.param_names)}")
+            if m.dim() != 3 or tuple(m.shape[:2]) != tuple(obs.map_size):
+                raise SolverError(f"init map '{k}' must be [H, W, C] with (H, W) = {obs.map_size}, "
+                                  f"got {tuple(m.shape)}")
+            params[k] = m.reshape(T, -1).to(dtype=dt, device=dev).expand(T, model.spec(k).channels)
+    return layout.pack(params)
+
+
+def separable(model: Model, spec: ParamSpec, dtype) -> bool:
+    """True when channel c of the RGB parameter only changes output channel c (checked numerically)."""
+    if spec.channels != 3:
+        return False
+    gen = torch.Generator().manual_seed(1)
+    nl = torch.rand(64, 1, generator=gen, dtype=dtype) * 0.9 + 0.05
+    nv = torch.rand(64, 1, generator=gen, dtype=dtype) * 0.9 + 0.05
+    lv = torch.rand(64, 1, generator=gen, dtype=dtype) * 1.6 - 0.8
+    g = Angles.from_cosines(nl, nv, lv)
+    p = {s.name: torch.rand(64, s.channels, generator=gen, dtype=dtype) * min(s.high - s.low, 1.0) * 0.8
+         + s.low + 0.1 * min(s.high - s.low, 1.0) for s in model.params}
+    q = dict(p)
+    q[spec.name] = p[spec.name].clone()
+    q[spec.name][:, 0] += 0.05 * min(spec.high - spec.low, 1.0)
+    jo = model.cosine_brdf(g, q) - model.cosine_brdf(g, p)
+    return bool(jo[:, 1:].abs().max() <= 1e-9 * (jo[:, :1].abs().max() + 1e-30))
+
+
+def jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups,
+              canonical: bool = False) -> tuple[Tensor, Tensor]:
+    """Prediction ``[S, 3]`` and Jacobian ``[S, 3, P]`` wrt per-sample θ ``phi [S, P]`` by reverse-mode AD.
+
+    A sample's prediction depends only on its own parameters, so the gradient of ``Σ_s pred_sc`` with
+    respect to ``phi`` holds row s of ``∂pred_c/∂phi`` for every sample: one evaluation and three backward
+    passes (one per colour channel) give the whole Jacobian. The columns of ``groups`` (:func:`param_groups`) are
+    filled, the others are zero (frozen parameters). Measured on the default scene (204 000 samples, P = 7,
+    2 threads): 132–144 ms against 196–321 ms for one forward-mode (dual tensor) pass per group — in torch
+    2.13 binary ops on dual tensors run Python reference implementations, and the first one imports
+    ``torch._dynamo`` (~1 s per process).
+
+    ``canonical=True``: ``phi`` holds canonical values and the Jacobian is with respect to them.
+    """
+    S, P = phi.shape
+    unpack = layout.split if canonical else layout.unpack
+    cols = sorted({c for cs in groups for c in cs})
+    J = torch.zeros(S, 3, P, dtype=ACC, device=phi.device)
+    with torch.enable_grad():
+        x = phi.detach().to(obs.dtype).requires_grad_(bool(cols))
+        pred = obs.predict(model, unpack(x))
+        if cols and pred.requires_grad:
+            for c in range(3):
+                (g,) = torch.autograd.grad(pred[:, c].sum(), x, retain_graph=c < 2, allow_unused=True)
+                if g is not None:
+                    J[:, c, cols] = g[:, cols].to(ACC)
+    return pred.detach().to(ACC), J
+
+
+def sample_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> Tensor:
+    """``[S]`` per-sample data term ``weight_s Σ_c ρ(y_sc − pred_sc)`` (``pred`` ``[S, 3]``) — what every solver
+    minimises, per texel (:func:`texel_cost`) or in total (:func:`weighted_cost`)."""
+    return robust_rho(obs.radiance.to(ACC) - pred.to(ACC), loss, delta).sum(-1) * obs.weight.to(ACC)
+
+
+def texel_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> Tensor:
+    return torch.zeros(obs.n_texels, dtype=ACC, device=pred.device).index_add(
+        0, obs.texel, sample_cost(obs, pred, loss, delta))
+
+
+def _neighbour_sum(theta: Tensor, H: int, W: int, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """Sum of the 4-neighbours' θ ``[T, P]`` over valid neighbours and their count ``[T, 1]``."""
+    P = theta.shape[-1]
+    x = (theta * valid[:, None]).reshape(H, W, P).permute(2, 0, 1)[None]
+    m = valid.to(theta.dtype).reshape(1, 1, H, W)
+    k = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]], dtype=theta.dtype, device=theta.device)
+    s = F.conv2d(F.pad(x, (1, 1, 1, 1)), k.expand(P, 1, 3, 3).contiguous(), groups=P)
+    c = F.conv2d(F.pad(m, (1, 1, 1, 1)), k[None, None])
+    return s[0].permute(1, 2, 0).reshape(-1, P), c.reshape(-1, 1)
+
+
+def weighted_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> float:
+    """The total data term ``Σ_s weight_s Σ_c ρ(y_sc − pred_sc)`` (:func:`sample_cost`)."""
+    return float(sample_cost(obs, pred, loss, delta).sum())
+
+
+def data_cost(model: Model, layout: Layout, obs: Observations, theta: Tensor, *, sampling: str, loss: str,
+              delta: float) -> float:
+    """The data term of θ ``[T, P]`` under ``sampling`` ("nearest" | "bilinear"), per residual (3 · Σ weight)."""
+    with torch.no_grad():
+        prm = {k: v.reshape(*obs.map_size, -1).to(obs.dtype) for k, v in layout.unpack(theta).items()}
+        pred = obs.predict(model, obs.per_sample(prm, sampling))
+    return weighted_cost(obs, pred, loss, delta) / float(3 * obs.weight.to(ACC).sum())
+
+
+def grid_values(spec: ParamSpec, G: int, dtype, device) -> Tensor:
+    """Grid of the main nonlinear parameter: geometric in [0.02, 1]·range for a bounded one (a
+    highlight's peak scales like 1/α² = 1/r⁴, so relative spacing is what matters), log-spaced
+    in [0.01, 10] for [lo, ∞)."""
+    if bounded(spec):
+        u = torch.logspace(math.log10(0.02), 0.0, G, dtype=dtype, device=device) * 0.98
+        return spec.low + (spec.high - spec.low) * u
+    return torch.logspace(-2, 1, G, dtype=dtype, device=device) + spec.low
+
+
+def linear_solve(model: Model, layout: Layout, obs: Observations, theta: Tensor, lin: list[ParamSpec],
+                  sep: dict[str, bool], loss: str, delta: float) -> tuple[Tensor, Tensor]:
+    """Closed-form weighted least squares for the linear parameters per texel, others held at θ.
+
+    With the nonlinear parameters fixed the prediction is ``b + A x`` (x: the linear parameters'
+    channels), so per texel ``x = (AᵀWA + λI)⁻¹ (AᵀW(y − b) + λ x_default)`` with a tiny ridge λ
+    toward the defaults (keeps unobserved combinations sensible). ``A`` is found by evaluating the
+    model at x = 0 and at each unit x (one evaluation per parameter for separable RGB ones; for a
+    :class:`materials.model.SumModel` only the parts that read that parameter). When
+    every linear parameter is a separable RGB one (albedo, f0 under Schlick), the system splits
+    into three independent per-channel systems of size #linear (2×2 for GGX + Lambert).
+    Bounds: a solution outside the range is clipped ``1e-4``·range inside it (a value on the
+    bound would saturate the sigmoid, dp/dθ = 0) and the other unknowns of that system are
+    re-solved once with the clipped ones fixed (one active-set pass). Returns θ and the per-texel cost.
+    """
+    T, dt, dev = obs.n_texels, ACC, obs.device
+    y, w = obs.radiance.to(ACC), obs.weight.to(ACC)
+    p = {k: torch.index_select(x, 0, obs.texel) for k, x in layout.unpack(theta.to(obs.dtype)).items()}
+    for s in lin:
+        p[s.name] = torch.zeros_like(p[s.name])
+    # a sum of lobes is evaluated part by part, so that a unit change of a linear parameter re-evaluates only the
+    # parts that read it: GGX + Lambert costs 2 specular + 2 Lambert evaluations instead of 3 of both (measured on
+    # the default scene, 2 threads: 56 against 83 ms). Environment lights are evaluated by the whole model.
+    parts = list(model.parts) if isinstance(model, SumModel) and not obs.env_terms else [model]
+    at_zero = [obs.predict(part, p).to(ACC) for part in parts]
+    b = sum(at_zero[1:], at_zero[0])
+
+    def response(q: dict, name: str) -> Tensor:         # change of the prediction from p to q (q differs in `name`)
+        return sum(obs.predict(part, q).to(ACC) - at_zero[j] for j, part in enumerate(parts)
+                   if name in part.param_names)
+
+    per_channel = all(s.channels == 3 and sep[s.name] for s in lin)
+    cols = []                                             # per column: [S, 3] response to a unit value
+    for s in lin:
+        if sep[s.name] or s.channels == 1:
+            q = dict(p)
+            q[s.name] = torch.ones_like(p[s.name])
+            a = response(q, s.name)
+            if s.channels == 1 or per_channel:
+                cols.append(a)
+            else:
+                for c in range(3):
+                    e = torch.zeros_like(a)
+                    e[:, c] = a[:, c]
+                    cols.append(e)
+        else:
+            for c in range(s.channels):
+                q = dict(p)
+                e = torch.zeros_like(p[s.name])
+                e[:, c] = 1.0
+                q[s.name] = e
+                cols.append(response(q, s.name))
+    lo = torch.cat([torch.full((s.channels,), float(s.low), dtype=dt, device=dev) for s in lin])
+    hi = torch.cat([torch.full((s.channels,), float(s.high), dtype=dt, device=dev) for s in lin])
+    span = torch.where(torch.isfinite(hi), hi - lo, torch.ones_like(hi))
+    lo_m, hi_m = lo + 1e-4 * span, torch.where(torch.isfinite(hi), hi - 1e-4 * span, hi)
+    dflt = torch.cat([s.full((), dtype=dt, device=dev).expand(s.channels) for s in lin])
+    if per_channel:
+        # unknowns ordered [param][channel] → per channel c a system over the params
+        A = torch.stack(cols, -1)                                             # [S, 3, Lp]
+        Lp = A.shape[-1]
+        M = torch.zeros(T, 3, Lp, Lp, dtype=dt, device=dev).index_add(
+            0, obs.texel, A[..., :, None] * A[..., None, :] * w[:, None, None, None])
+        rhs = torch.zeros(T, 3, Lp, dtype=dt, device=dev).index_add(0, obs.texel, A * ((y - b) * w[:, None])[..., None])
+        perm = lambda v: v.reshape(Lp, 3).T  # noqa: E731  [L] in [param][channel] order → [3, Lp]
+        lo_c, hi_c, d_c = perm(lo_m), perm(hi_m), perm(dflt)
+    else:
+        A = torch.stack(cols, -1)                                             # [S, 3, L]
+        M = torch.einsum("scp,s,scq->spq", A, w, A)
+        M = torch.zeros(T, M.shape[1], M.shape[2], dtype=dt, device=dev).index_add(0, obs.texel, M)[:, None]
+        rhs = torch.zeros(T, A.shape[-1], dtype=dt, device=dev).index_add(
+            0, obs.texel, torch.einsum("scp,s,sc->sp", A, w, y - b))[:, None]
+        lo_c, hi_c, d_c = lo_m[None], hi_m[None], dflt[None]
+    n = M.shape[-1]
+    eye = torch.eye(n, dtype=dt, device=dev)
+    lam = 1e-9 * (torch.diagonal(M, dim1=-2, dim2=-1).mean(-1) + 1e-20)                 # [T, K]
+    Mr = M + lam[..., None, None] * eye
+    rr = rhs + lam[..., None] * d_c
+    x = torch.linalg.solve_ex(Mr, rr)[0]
+    clip = (x < lo_c) | (x > hi_c)
+    if bool(clip.any()):
+        xc = x.clamp(lo_c, hi_c)
+        # active set: fixed (clipped) unknowns leave the system; the free ones are re-solved
+        free = ~clip
+        fm = free[..., :, None] & free[..., None, :]
+        Mf = torch.where(fm, Mr, eye.expand_as(Mr))
+        rf = torch.where(free, rr - torch.einsum("...pq,...q->...p", torch.where(free[..., None, :], 0.0, Mr),
+                                                 torch.where(clip, xc, torch.zeros_like(xc))), xc)
+        x2 = torch.linalg.solve_ex(Mf, rf)[0]
+        x = torch.where(clip, xc, x2).clamp(lo_c, hi_c)
+    xflat = x.transpose(-1, -2).reshape(T, -1) if per_channel else x[:, 0]           # [T, L] in [param][channel]
+    if loss == "l2":
+        # Σ_s w_s ‖y_s − b_s − A_s x‖² = c₀ − 2 xᵀ rhs + xᵀ M x per texel, from the normal equations (without
+        # the ridge): no per-sample prediction. Measured on the default scene: 57 → 14 ms of a 167 ms solve
+        c0 = torch.zeros(T, dtype=dt, device=dev).index_add(0, obs.texel, (y - b).square().sum(-1) * w)
+        cost = (c0 + (x * ((M @ x[..., None])[..., 0] - 2 * rhs)).sum((-2, -1))).clamp_min(0.0)
+    else:
+        if per_channel:
+            pred = b + (A * torch.index_select(x, 0, obs.texel)).sum(-1)
+        else:
+            pred = b + torch.einsum("scp,sp->sc", A, torch.index_select(xflat, 0, obs.texel))
+        cost = texel_cost(obs, pred, loss, delta)
+    cand = theta.clone()
+    off = 0
+    for s in lin:
+        cand[:, layout.cols(s.name)] = from_canonical(s, xflat[:, off:off + s.channels])
+        off += s.channels
+    return cand, cost
+
+
+def _start_values(spec: ParamSpec) -> list[float]:
+    """Starting values of a secondary nonlinear parameter for the closed-form initialisation: its
+    default, or for a bounded RGB one (e.g. f0 where it is not linear: Gotanda's diffuse·(1 − f0), the
+    coat-relative f0 of the layered model) 10 % and 90 % of its range. A metal's f0 is a different
+    basin from a dielectric's, which LM from 0.04 did not reach (gold under a coat: cost 20 from one
+    start, 3e-21 from both), and f0 = 0.04 under a coat of η 1.5 is a stationary point (the bottom is
+    index-matched: relative f0 = 0 with zero derivative), so the default itself is not a start."""
+    if spec.channels == 3 and bounded(spec) and not spec.linear:
+        return [spec.low + 0.1 * (spec.high - spec.low), spec.low + 0.9 * (spec.high - spec.low)]
+    return [spec.default]
+
+
+def closed_form_init(model: Model, layout: Layout, obs: Observations, theta: Tensor, grid: int,
+                      loss: str, delta: float, sep: dict[str, bool], refine: int = 3,
+                      fixed: Sequence[str] = ()) -> tuple[Tensor, dict]:
+    """Closed-form linear parameters per texel for each of ``grid`` values of the main nonlinear
+    one; keep the best per texel, then coarse to fine: ``refine`` rounds, each trying the best
+    value ± h (log units) and the vertex of the parabola through those three costs (three
+    closed-form solves with per-texel values), keeping the best and dividing h by 3.
+
+    The other nonlinear parameters stay at θ — or, when some have several :func:`_start_values`
+    (and are not in ``fixed``, i.e. given by the caller's ``init``), the search runs once per
+    combination of starts and each texel keeps its cheapest."""
+    lin = [s for s in layout.specs if s.linear]
+    nonlin = [s for s in layout.specs if not s.linear]
+    info = {"linear": [s.name for s in lin], "grid_param": None, "grid": 0}
+    if not lin:
+        return theta, info
+    primary = next((s for s in nonlin if s.channels == 1), None)
+    with torch.no_grad():
+        if primary is None or grid <= 1:
+            cand, _ = linear_solve(model, layout, obs, theta, lin, sep, loss, delta)
+            return cand, info
+        values = grid_values(primary, grid, ACC, obs.device)
+        info.update(grid_param=primary.name, grid=len(values))
+        multi = [s for s in nonlin if s is not primary and s.name not in fixed and len(_start_values(s)) > 1]
+        best, best_cost, n_solves = None, None, 0
+        for combo in itertools.product(*(_start_values(s) for s in multi)):
+            th = theta.clone()
+            for s, val in zip(multi, combo, strict=True):
+                th[:, layout.cols(s.name)] = from_canonical(s, torch.full_like(th[:, layout.cols(s.name)], val))
+            cand, cost, n = _grid_search(model, layout, obs, th, primary, values, lin, sep, loss, delta, refine)
+            n_solves += n
+            if best is None:
+                best, best_cost = cand, cost
+            else:
+                better = cost < best_cost
+                best = torch.where(better[:, None], cand, best)
+                best_cost = torch.where(better, cost, best_cost)
+        info["grid_solves"] = n_solves
+        if multi:
+            info["grid_starts"] = {s.name: _start_values(s) for s in multi}
+    return best, info
+
+
+def _grid_search(model: Model, layout: Layout, obs: Observations, theta: Tensor, primary: ParamSpec,
+                 values: Tensor, lin: list[ParamSpec], sep: dict[str, bool], loss: str, delta: float,
+                 refine: int) -> tuple[Tensor, Tensor, int]:
+    """One grid + coarse-to-fine search of :func:`closed_form_init` → (θ [T, P], cost [T], solves)."""
+    T, dt, dev = obs.n_texels, ACC, obs.device
+    pc = layout.cols(primary.name)
+    ar = torch.arange(T, device=dev)
+
+    def at(x):                       # closed-form solve at per-texel log-values x [T]
+        th = theta.clone()
+        th[:, pc] = from_canonical(primary, torch.exp(x)[:, None].clamp(primary.low, primary.high))
+        return linear_solve(model, layout, obs, th, lin, sep, loss, delta)
+
+    costs, cands = [], []
+    for val in values:
+        th = theta.clone()
+        th[:, pc] = from_canonical(primary, val.expand(T, 1))
+        cand, cost = linear_solve(model, layout, obs, th, lin, sep, loss, delta)
+        costs.append(cost)
+        cands.append(cand)
+    costs_t = torch.stack(costs)                                       # [G, T]
+    k = costs_t.argmin(0)
+    best = torch.stack(cands)[k, ar]
+    best_cost = costs_t[k, ar]
+    del cands
+    n_solves = len(values)
+    # coarse to fine (variable projection in 1-D: every trial re-solves the linear parameters):
+    # each round tries x ± h and the vertex of the parabola through the three costs, keeps
+    # the best of the four per texel and shrinks h by 3
+    xl = torch.log(values.clamp_min(1e-12))
+    h = (xl[1:] - xl[:-1]).mean() if len(values) > 1 else torch.tensor(0.5, dtype=dt)
+    x = xl[k]
+    lo, hi = math.log(max(primary.low, 1e-4)), math.log(primary.high)
+    for _ in range(refine):
+        xm, xp = (x - h).clamp(lo, hi), (x + h).clamp(lo, hi)
+        candm, cm = at(xm)
+        candp, cp = at(xp)
+        den = cm - 2 * best_cost + cp
+        ok = den > 0
+        xv = torch.where(ok, x + 0.5 * h * (cm - cp) / den.where(ok, torch.ones_like(den)), x)
+        xv = torch.minimum(torch.maximum(xv, xm), xp)
+        candv, cv = at(xv)
+        n_solves += 3
+        for c_, k_, x_ in ((candm, cm, xm), (candp, cp, xp), (candv, cv, xv)):
+            better = k_ < best_cost
+            best = torch.where(better[:, None], c_, best)
+            best_cost = torch.where(better, k_, best_cost)
+            x = torch.where(better, x_, x)
+        h = h / 3
+    return best, best_cost, n_solves
+
+
+#: With bilinear sampling the per-texel LM only starts the joint refinement; by default it stops after at least
+#: ``BILINEAR_LM_MIN`` of its (at most 10) iterations once the total cost has dropped by less than ``BILINEAR_LM_TOL``
+#: (relative) twice in a row. Measured (2 threads, cached observations; per-texel cost drops per iteration): the default
+#: scene and its 2-material, 3-material and shot-noise variants drop by 1e-4–6e-4 from the first iteration and stop at
+#: 5 — LM 3.2–3.4 → 1.4–2.0 s, the same maps to 4 decimals but 3 materials (0.0057 / 0.0078 / 0.0132 → 0.0059 /
+#: 0.0069 / 0.0134, observable and determined-at-the-truth texels unchanged); the fixed-light rig (drops of 2e-3–6e-3
+#: until the 14th) and the layered 128-px scene (1e-2–5e-1 for 20 iterations) run all 10, as before. A fixed 5 broke
+#: the layered fallback test scene (session 11), which keeps dropping fast; 40 with this rule let the layered scene run
+#: 33 (determined-at-the-truth 0.149 / 0.105 / 0.078 / 0.153 → 0.094 / 0.088 / 0.077 / 0.136 but all-texel f0 0.202
+#: → 0.217 and more texels called observable at a wrong albedo; docs/reconstruction.md, "Session 12") — not the default.
+BILINEAR_LM_TOL = 1e-3
+BILINEAR_LM_MIN = 5
+
+
+def per_texel_lm(model: Model, obs: Observations, layout: Layout, theta: Tensor, groups, *, loss: str, delta: float,
+                 iterations: int, schedule: str, smoothness: float, reproject: int, sep: dict[str, bool],
+                 lm_tol: float, min_iterations: int = 0,
+                 progress: Callable[[str, int, float], None] | None = None) -> tuple[Tensor, list[float], dict]:
+    """The per-texel Levenberg-Marquardt stages of :func:`capture.fit.fast.solve_fast` from θ ``[T, P]`` (the
+    closed-form initialisation): ``schedule`` "joint" (all parameters every iteration) or "staged" (scale terms,
+    lobe shape, then all), ``smoothness`` the weight of the neighbour prior, ``reproject`` the variable-projection
+    period, ``sep`` the linear parameters' separability (:func:`separable`). Stops after ``iterations`` (all stages
+    together) or, from ``min_iterations`` on, once the total cost drops by less than ``lm_tol`` (relative) twice in a
+    row, or when no texel is active.
+
+    Returns:
+        ``(theta [T, P], history, info)`` — the cost after each iteration (first: the starting cost) and
+        ``lm_s``, ``lm_iterations``, ``accepted`` (accepted fraction per iteration), ``stages``.
+    """
+    T, P, H, W = obs.n_texels, layout.P, *obs.map_size
+    dt, dev = ACC, obs.device
+    lin_specs = [s for s in layout.specs if s.linear]
+    info: dict = {}
+    observed = torch.zeros(T, dtype=torch.bool, device=dev)
+    observed[obs.texel] = True
+    lin_cols = [c for s in layout.specs if s.linear for c in layout.cols(s.name)]
+    non_cols = [c for s in layout.specs if not s.linear for c in layout.cols(s.name)]
+    if schedule == "staged" and lin_cols and non_cols:
+        k = max(iterations // 3, 1)
+        stages = [("scale", lin_cols, k), ("shape", non_cols, k), ("all", list(range(P)), max(iterations - 2 * k, 1))]
+    else:
+        stages = [("all", list(range(P)), iterations)]
+    lam = torch.full((T,), 1e-3, dtype=dt, device=dev)
+    history: list[float] = []
+    n_res_total = float(3 * obs.weight.to(ACC).sum())
+    accepted = []
+    it = 0
+    t_lm = time.perf_counter()
+    with torch.no_grad():
+        pred = obs.predict(model, layout.unpack(torch.index_select(theta, 0, obs.texel).to(obs.dtype)))
+    cost_t = texel_cost(obs, pred, loss, delta)
+    history.append(float(cost_t.sum()) / n_res_total)
+    eye = torch.eye(P, dtype=dt, device=dev)
+    for stage, cols, n_it in stages:
+        free = torch.zeros(P, dtype=torch.bool, device=dev)
+        free[cols] = True
+        sgroups = [c for c in groups if all(free[x] for x in c)]
+        stall = 0
+        active = observed.clone()
+        for _ in range(n_it):
+            it += 1
+            sub = obs if bool(active.all()) or float(active.float().mean()) > 0.8 else obs.select(active[obs.texel])
+            with torch.no_grad():
+                pred_s, J = jacobian(model, layout, sub, torch.index_select(theta, 0, sub.texel), sgroups)
+                r = sub.radiance.to(ACC) - pred_s
+                wgt = sub.weight.to(ACC)[:, None] * irls_weights(r, loss, delta)
+                Jw = J * wgt[..., None]
+                JtJ = torch.zeros(T, P, P, dtype=dt, device=dev).index_add(
+                    0, sub.texel, torch.einsum("scp,scq->spq", Jw, J))
+                Jtr = torch.zeros(T, P, dtype=dt, device=dev).index_add(0, sub.texel, torch.einsum("scp,sc->sp", Jw, r))
+                d = torch.diagonal(JtJ, dim1=-2, dim2=-1).clone()
+                scale = d.mean(-1, keepdim=True).clamp_min(1e-30)
+                if smoothness > 0:
+                    mu = smoothness * float(d[observed].mean()) if bool(observed.any()) else 0.0
+                    nsum, cnt = _neighbour_sum(theta, H, W, observed)
+                    JtJ = JtJ + mu * cnt[:, :, None] * eye
+                    Jtr = Jtr + mu * (nsum - cnt * theta)
+                    d = torch.diagonal(JtJ, dim1=-2, dim2=-1).clone()
+                # in place on the [T, P, P] blocks: fresh [T, P, P] temporaries (diag_embed, where) cost
+                # ~40 ms each on the default scene, several per iteration
+                A = JtJ
+                A.diagonal(dim1=-2, dim2=-1).add_(lam[:, None] * (d + 1e-9 * scale))
+                rhs = Jtr
+                if not bool(free.all()):
+                    # frozen columns: identity rows, zero right-hand side → zero step
+                    A[:, ~free, :] = 0.0
+                    A[:, :, ~free] = 0.0
+                    A[:, ~free, ~free] = 1.0
+                    rhs = torch.where(free[None, :], rhs, torch.zeros_like(rhs))
+                live = active & (d.sum(-1) > 0)
+                A[~live] = eye
+                rhs = torch.where(live[:, None], rhs, torch.zeros_like(rhs))
+                step, ok = torch.linalg.solve_ex(A, rhs)
+                step = torch.where((ok == 0)[:, None] & torch.isfinite(step), step, torch.zeros_like(step))
+                # trust region in θ: each component of the step is clamped to ±MAX_STEP (logit/softplus
+                # units), so that a poor linearisation cannot throw a parameter into the flat tail of
+                # its sigmoid (dp/dθ ≈ 0) from where it would never return. Per component, not by
+                # scaling the whole step: a near-null column (absorption on its softplus floor) has an
+                # enormous damped step, and scaling by it froze every other parameter (session 4)
+                step = step.clamp(-MAX_STEP, MAX_STEP)
+                trial = theta + step
+                pred_t = obs.predict(model, layout.unpack(torch.index_select(trial, 0, obs.texel).to(obs.dtype))) \
+                    if sub is obs else None
+                if pred_t is None:
+                    trial_s = torch.index_select(trial, 0, sub.texel).to(obs.dtype)
+                    pred_t_sub = sub.predict(model, layout.unpack(trial_s))
+                    new_cost = cost_t.clone()
+                    new_cost[active] = 0
+                    new_cost = new_cost + texel_cost(sub, pred_t_sub, loss, delta)
+                else:
+                    new_cost = texel_cost(obs, pred_t, loss, delta)
+                old_cost = cost_t
+                if smoothness > 0:
+                    nsum, cnt = _neighbour_sum(theta, H, W, observed)
+                    def prior(th, mu=mu, cnt=cnt, nsum=nsum):
+                        return mu * ((cnt * th.square() - 2 * th * nsum).sum(-1))
+
+                    new_cost_c, old_cost_c = new_cost + prior(trial), cost_t + prior(theta)
+                else:
+                    new_cost_c, old_cost_c = new_cost, old_cost
+                acc = live & (new_cost_c < old_cost_c)
+                theta = torch.where(acc[:, None], trial, theta)
+                cost_t = torch.where(acc, new_cost, cost_t)
+                lam = torch.where(acc, (lam / 3).clamp_min(1e-12), (lam * 4).clamp_max(1e12))
+                # texels converged: tiny relative improvement or step
+                rel = (old_cost_c - torch.where(acc, new_cost_c, old_cost_c)) / old_cost_c.clamp_min(1e-300)
+                small = (step.abs().amax(-1) < 1e-9) | (acc & (rel < 1e-12)) | (lam >= 1e12) | (cost_t <= 1e-30)
+                active = active & ~small
+                if reproject and lin_specs and stage == "all" and it % reproject == 0 and sub is obs:
+                    # variable-projection step: re-solve the linear parameters in closed form at the
+                    # current nonlinear ones; keep it per texel where it lowers the cost
+                    cand, ccost = linear_solve(model, layout, obs, theta, lin_specs, sep, loss, delta)
+                    better = observed & (ccost < cost_t)
+                    theta = torch.where(better[:, None], cand, theta)
+                    cost_t = torch.where(better, ccost, cost_t)
+            accepted.append(float(acc.sum()) / max(int(live.sum()), 1))
+            tot = float(cost_t.sum()) / n_res_total
+            if progress is not None:
+                progress(stage, it, tot)
+            prev = history[-1]
+            history.append(tot)
+            if prev - tot <= lm_tol * max(prev, 1e-300):
+                stall += 1
+                if stall >= 2 and it >= min_iterations:
+                    break
+            else:
+                stall = 0
+            if not bool(active.any()):
+                break
+    info["lm_s"] = time.perf_counter() - t_lm
+    info["lm_iterations"] = it
+    info["accepted"] = accepted
+    info["stages"] = [s[0] for s in stages]
+    return theta, history, info
