@@ -35,6 +35,7 @@ class SolverError(ValueError):
 
 # -- parameterisation -----------------------------------------------------------------------------
 def bounded(spec: ParamSpec) -> bool:
+    """True for a parameter with a finite upper bound (sigmoid parameterisation), False for [lo, ∞) (softplus)."""
     return math.isfinite(spec.high)
 
 

@@ -26,6 +26,7 @@ LOSSES = ("l2", "huber", "l1")
 
 # -- losses ---------------------------------------------------------------------------------------
 def check_loss(loss: str) -> str:
+    """``loss`` if it is one of :data:`LOSSES`, else a :class:`SolverError` naming them."""
     if loss not in LOSSES:
         raise SolverError(f"unknown loss {loss!r}; choose one of {LOSSES}")
     return loss
@@ -53,6 +54,7 @@ def irls_weights(r: Tensor, loss: str, delta: float) -> Tensor:
 
 
 def default_delta(obs: Observations, loss: str, delta: float | None) -> float:
+    """The Huber/L1 scale: ``delta`` when given (checked), else 5 % of the median measured radiance."""
     if delta is not None:
         if not (delta > 0 and math.isfinite(delta)):
             raise SolverError(f"delta must be a positive finite number (radiance units), got {delta!r}")
@@ -68,6 +70,7 @@ NOISE = (0.01, 0.1)
 
 
 def check_noise(noise) -> tuple[float, float]:
+    """The noise model ``(relative std, floor fraction)`` as two positive finite floats, else a :class:`SolverError`."""
     try:
         rel, floor = (float(x) for x in noise)
     except (TypeError, ValueError):

@@ -38,6 +38,8 @@ __all__ = ["BILINEAR_LM_TOL", "BILINEAR_LM_MIN", "check_inputs", "init_theta", "
 
 
 def check_inputs(model: Model, obs: Observations, loss: str) -> None:
+    """A :class:`SolverError` unless ``model`` is a model with parameters, ``obs`` observations with samples and
+    ``loss`` one of the losses."""
     if not isinstance(model, Model):
         raise SolverError(f"model must be a materials.Model (materials.get(name)), got {type(model).__name__}")
     if not isinstance(obs, Observations):
@@ -50,6 +52,7 @@ def check_inputs(model: Model, obs: Observations, loss: str) -> None:
 
 
 def init_theta(model: Model, layout: Layout, obs: Observations, init: Mapping[str, Tensor] | None) -> Tensor:
+    """The starting θ ``[T, P]``: the model's defaults, with the maps of ``init`` (``name → [H, W, C]``, checked)."""
     T, dt, dev = obs.n_texels, obs.dtype, obs.device
     params = model.defaults((T,), device=dev, dtype=dt)
     if init is not None:
@@ -118,6 +121,7 @@ def sample_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> Ten
 
 
 def texel_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> Tensor:
+    """``[T]`` the data term per texel (:func:`sample_cost` summed over each texel's samples)."""
     return torch.zeros(obs.n_texels, dtype=ACC, device=pred.device).index_add(
         0, obs.texel, sample_cost(obs, pred, loss, delta))
 
