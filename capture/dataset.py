@@ -43,7 +43,7 @@ from torch import Tensor
 from materials import Model, SumModel
 from materials import get as get_model
 from renderer.camera import Camera, CameraError
-from renderer.imageio import ImageIOError, decode, read_exr, read_png, write_exr, write_png
+from renderer.imageio import ImageIOError, decode, read_exr, read_png, read_raster, write_exr, write_png
 from renderer.lights import LightError, PointLight, light_from_dict, light_to_dict
 from renderer.mesh import Mesh, MeshError, load_mesh, save_mesh
 
@@ -53,7 +53,7 @@ __all__ = [
     "FORMAT", "VERSION", "ENCODINGS", "DatasetError", "DatasetWarning", "View", "GroundTruth", "Photo", "Dataset",
     "load_dataset", "write_dataset", "model_from_spec", "model_spec", "camera_sees_mesh", "dataset_root",
     "degenerate_faces", "winding_numbers", "EXPOSURE_RANGE", "MAX_LIGHT", "JPEG_SUFFIXES", "LIGHT_FRAMES",
-    "MASK_DIR", "read_raster", "light_to_world",
+    "MASK_DIR", "light_to_world",
 ]
 
 #: The ``format`` string of every shadecap dataset's ``scene.json``.
@@ -544,51 +544,6 @@ def _png_bit_depth(path: Path) -> int | None:
     return None
 
 
-def read_raster(path) -> tuple[np.ndarray, int | None]:
-    """Read a PNG, JPEG or TIFF file as stored → ``(array [H, W, C], bits)``.
-
-    ``cv2.imdecode(..., IMREAD_UNCHANGED)``: no colour conversion, no EXIF rotation (pixels are used as stored,
-    which is how calibration tools see them), channels reordered to RGB(A). ``bits`` is 8 or 16 for integer
-    samples (the array is ``uint8`` / ``uint16``), None for float TIFF (``float32``). A PNG without its IEND
-    chunk or a JPEG without its end-of-image marker is refused as truncated.
-
-    Raises:
-        ImageIOError: missing, unreadable, truncated or an unsupported sample type; the message names the file.
-    """
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise ImageIOError(f"{path}: no such image file")
-    data = path.read_bytes()
-    if not data:
-        raise ImageIOError(f"{path}: is empty (0 bytes); the file was truncated or never written")
-    if data[:8] == b"\x89PNG\r\n\x1a\n" and not data.rstrip(b"\0").endswith(b"IEND\xaeB`\x82"):
-        raise ImageIOError(f"{path}: PNG is truncated (no IEND chunk at the end); rewrite the file")
-    if data[:2] == b"\xff\xd8" and not data.rstrip(b"\0").endswith(b"\xff\xd9"):
-        raise ImageIOError(f"{path}: JPEG is truncated (no end-of-image marker); copy the file again")
-    arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if arr is None:
-        raise ImageIOError(f"{path}: OpenCV could not decode the image; the file is corrupt or not an image")
-    if arr.dtype == np.uint8:
-        bits = 8
-    elif arr.dtype == np.uint16:
-        bits = 16
-    elif arr.dtype == np.float32:
-        bits = None
-    else:
-        raise ImageIOError(f"{path}: unsupported sample type {arr.dtype}; use 8/16-bit integer or 32-bit float "
-                           "samples")
-    if arr.ndim == 2:
-        arr = arr[:, :, None]
-    c = arr.shape[2]
-    if c == 3:
-        arr = arr[:, :, ::-1]
-    elif c == 4:
-        arr = arr[:, :, [2, 1, 0, 3]]
-    return np.ascontiguousarray(arr), bits
-
-
 def _read_view_image(root: Path, view: View, i: int, encoding: str,
                      bits: int | None) -> tuple[Tensor, int, Tensor | None]:
     """Read and check one view's image → (decoded file values ``[H, W, 3]`` float32, non-finite pixel count,
@@ -1012,7 +967,7 @@ def _load_gt(root: Path, scene: Path, g, msgs: list[str]) -> GroundTruth:
 # writing
 
 
-def _dumps(x, indent: int = 0) -> str:
+def scene_json_text(x, indent: int = 0) -> str:
     """JSON with objects indented and lists of numbers (and of number lists, e.g. K) on one line."""
     pad, inner = " " * indent, " " * (indent + 2)
     flat = lambda v: not isinstance(v, (dict, list)) or (isinstance(v, list) and all(
@@ -1020,12 +975,12 @@ def _dumps(x, indent: int = 0) -> str:
     if isinstance(x, dict):
         if not x:
             return "{}"
-        items = [f"{inner}{json.dumps(str(k))}: {_dumps(v, indent + 2)}" for k, v in x.items()]
+        items = [f"{inner}{json.dumps(str(k))}: {scene_json_text(v, indent + 2)}" for k, v in x.items()]
         return "{\n" + ",\n".join(items) + "\n" + pad + "}"
     if isinstance(x, list):
         if all(flat(v) for v in x):
             return json.dumps(x, allow_nan=False, separators=(", ", ": "))
-        return "[\n" + ",\n".join(inner + _dumps(v, indent + 2) for v in x) + "\n" + pad + "]"
+        return "[\n" + ",\n".join(inner + scene_json_text(v, indent + 2) for v in x) + "\n" + pad + "]"
     return json.dumps(x, allow_nan=False)
 
 
@@ -1163,7 +1118,7 @@ def _write_into(tmp: Path, mesh, views, images, encoding, ext, bits, saturation,
     if gt is not None:
         doc["gt"] = _write_gt(tmp, gt)
     doc["meta"] = jsonable(dict(meta or {}))
-    text = _dumps(jsonable(doc))
+    text = scene_json_text(jsonable(doc))
     (tmp / SCENE_FILE).write_text(text + "\n", encoding="utf-8")
     if validate:
         with warnings.catch_warnings():

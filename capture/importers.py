@@ -56,10 +56,10 @@ from .dataset import (
     VERSION,
     DatasetError,
     DatasetWarning,
-    _dumps,
     light_to_world,
     load_dataset,
     read_raster,
+    scene_json_text,
 )
 from .outputs import atomic_folder, check_output, jsonable
 
@@ -969,7 +969,7 @@ def _write(shots: list[_Shot], out, options: ImportOptions, overwrite: bool, sou
         doc["meta"] = {"importer": source, "undistorted": bool(undistort), "unwrapped": options.unwrap,
                        "flash_camera_frame": [{"position": list(f.position), "intensity": list(f.intensity)}
                                               for f in options.flash]}
-        (tmp / SCENE_FILE).write_text(_dumps(jsonable(doc)) + "\n", encoding="utf-8")
+        (tmp / SCENE_FILE).write_text(scene_json_text(jsonable(doc)) + "\n", encoding="utf-8")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", DatasetWarning)
             try:

@@ -133,7 +133,7 @@ class Camera:
         Sample ``s`` belongs to pixel ``s // k²`` (flat index y·W + x); inside a pixel the k×k samples
         sit at offsets ``(a + ½)/k − ½``, a = 0..k−1 (row-major, x fastest). k = 1 gives the centres.
         """
-        k = _check_supersample(supersample)
+        k = check_supersample(supersample)
         dtype = dtype or self.K.dtype
         off = (torch.arange(k, dtype=dtype) + 0.5) / k - 0.5
         ys = torch.arange(self.height, dtype=dtype)
@@ -148,7 +148,7 @@ class Camera:
         """Like :meth:`pixel_grid`, but each of the k×k samples of a pixel lies uniformly at random inside its
         stratum (a cell of side 1/k) instead of at the stratum's centre: stratified jitter, the pixel sampling of
         a Monte Carlo renderer with a box filter. Same order and shape ``[H·W·k², 2]``; ``generator`` seeds it."""
-        k = _check_supersample(supersample)
+        k = check_supersample(supersample)
         dtype = dtype or self.K.dtype
         grid = self.pixel_grid(k, dtype)
         if not isinstance(generator, torch.Generator):
@@ -307,7 +307,8 @@ def _c2w(cam: Camera) -> tuple[Tensor, Tensor]:
     return R.T, -R.T @ cam.t.double()
 
 
-def _check_supersample(k) -> int:
+def check_supersample(k) -> int:
+    """The supersampling factor k (k × k rays per pixel) as an int, or ValueError naming the allowed range."""
     if isinstance(k, bool) or not isinstance(k, int) or k < 1 or k > 16:
         raise ValueError(f"supersample must be an integer in [1, 16], got {k!r}")
     return k

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .camera import Camera, _check_supersample
+from .camera import Camera, check_supersample
 from .mesh import Mesh
 
 __all__ = ["GBuffer", "render_gbuffer", "render_footprint", "intersect", "intersect_faces", "pixel_filter",
@@ -286,7 +286,7 @@ def render_gbuffer(mesh: Mesh, camera: Camera, supersample: int = 1, *, jitter: 
         A :class:`GBuffer` of float32 (torch default dtype) tensors on the CPU.
     """
     _check_inputs(mesh, camera, "render_gbuffer")
-    k = _check_supersample(supersample)
+    k = check_supersample(supersample)
     if pixels is None:
         grid = camera.jittered_grid(k, jitter, torch.float64) if jitter is not None else \
             camera.pixel_grid(k, torch.float64)

@@ -43,7 +43,8 @@ from torch import Tensor
 
 __all__ = [
     "ImageIOError", "ImageNotFoundError", "TRANSFERS", "decode", "encode", "read_exr", "read_image",
-    "read_png", "write_exr", "write_image", "write_png", "atomic_write_bytes", "apply_umask", "current_umask",
+    "read_png", "read_raster", "write_exr", "write_image", "write_png", "atomic_write_bytes", "apply_umask",
+    "current_umask",
     "REC709_CHROMATICITIES",
 ]
 
@@ -434,21 +435,22 @@ def write_png(path, img, bits: int = 8, transfer: str = "srgb") -> None:
     atomic_write_bytes(path, buf.tobytes())
 
 
-def read_png(path, transfer: str = "srgb") -> Tensor:
-    """Read an 8/16-bit PNG (or JPEG/TIFF) → float32 ``[H, W, C]`` linear (C = 1, 3 or 4, RGB order).
+def read_raster(path) -> tuple[np.ndarray, int | None]:
+    """Read a PNG, JPEG or TIFF file as stored → ``(array [H, W, C], bits)``, C = 1, 3 or 4 in RGB(A) order.
 
-    Codes are divided by 255 or 65535, colour channels decoded by ``transfer``; alpha stays linear.
-    Gray+alpha files come back as RGBA (OpenCV expands them).
+    ``cv2.imdecode(..., IMREAD_UNCHANGED)``: no colour conversion, no EXIF rotation (pixels are used as stored,
+    which is how calibration tools see them). ``bits`` is 8 or 16 for integer samples (the array is ``uint8`` /
+    ``uint16``), None for float TIFF (``float32``). A ``.png`` without the PNG signature, a PNG without its IEND
+    chunk and a JPEG without its end-of-image marker are refused.
 
     Raises:
         ImageNotFoundError: no such file.
-        ImageIOError: not an image, truncated (a PNG must end with its IEND chunk), or an unsupported
-            pixel type; the message names the file.
+        ImageIOError: unreadable, truncated, not an image, or an unsupported sample type or channel count; the
+            message names the file.
     """
     import cv2
 
     path = _path(path)
-    t = _transfer_name(transfer)
     _check_readable(path)
     data = path.read_bytes()
     if path.suffix.lower() == ".png" or data[:8] == _PNG_SIGNATURE:
@@ -456,15 +458,15 @@ def read_png(path, transfer: str = "srgb") -> Tensor:
             raise ImageIOError(f"{path}: is not a PNG file (bad signature)")
         if not data.rstrip(b"\0").endswith(_PNG_IEND):
             raise ImageIOError(f"{path}: PNG is truncated (no IEND chunk at the end); rewrite the file")
+    if data[:2] == b"\xff\xd8" and not data.rstrip(b"\0").endswith(b"\xff\xd9"):
+        raise ImageIOError(f"{path}: JPEG is truncated (no end-of-image marker); copy the file again")
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
         raise ImageIOError(f"{path}: OpenCV could not decode the image; the file is corrupt or not an image")
-    if arr.dtype == np.uint8:
-        scale = 255.0
-    elif arr.dtype == np.uint16:
-        scale = 65535.0
-    else:
-        raise ImageIOError(f"{path}: unsupported pixel type {arr.dtype}; expected 8- or 16-bit integers")
+    bits = {np.dtype(np.uint8): 8, np.dtype(np.uint16): 16, np.dtype(np.float32): None}.get(arr.dtype, 0)
+    if bits == 0:
+        raise ImageIOError(f"{path}: unsupported sample type {arr.dtype}; use 8/16-bit integer or 32-bit float "
+                           "samples")
     if arr.ndim == 2:
         arr = arr[:, :, None]
     c = arr.shape[2]
@@ -474,7 +476,26 @@ def read_png(path, transfer: str = "srgb") -> Tensor:
         arr = arr[:, :, [2, 1, 0, 3]]
     elif c != 1:
         raise ImageIOError(f"{path}: unsupported channel count {c}; expected 1, 3 or 4")
-    x = torch.from_numpy(np.ascontiguousarray(arr).astype(np.float32) / np.float32(scale))
+    return np.ascontiguousarray(arr), bits
+
+
+def read_png(path, transfer: str = "srgb") -> Tensor:
+    """Read an 8/16-bit PNG (or JPEG/TIFF) → float32 ``[H, W, C]`` linear (C = 1, 3 or 4, RGB order).
+
+    Codes are divided by 255 or 65535, colour channels decoded by ``transfer``; alpha stays linear.
+    Gray+alpha files come back as RGBA (OpenCV expands them). The file is read by :func:`read_raster`.
+
+    Raises:
+        ImageNotFoundError: no such file.
+        ImageIOError: not an image, truncated (a PNG must end with its IEND chunk), or an unsupported
+            pixel type; the message names the file.
+    """
+    t = _transfer_name(transfer)
+    arr, bits = read_raster(path)
+    if bits is None:
+        raise ImageIOError(f"{_path(path)}: unsupported pixel type {arr.dtype}; expected 8- or 16-bit integers")
+    x = torch.from_numpy(arr.astype(np.float32) / np.float32((1 << bits) - 1))
+    c = x.shape[-1]
     ncol = 3 if c == 4 else c
     if t != "linear":
         x = torch.cat([decode(x[..., :ncol], t), x[..., ncol:]], dim=-1)
