@@ -179,7 +179,8 @@ class SyntheticConfig:
                                      f"got {x!r}")
         if isinstance(self.psf_sigma, bool) or not isinstance(self.psf_sigma, (int, float)) \
                 or not 0 <= self.psf_sigma <= 4:
-            raise SyntheticError(f"psf_sigma must be a number of pixels in [0, 4] (0 = no blur), got {self.psf_sigma!r}")
+            raise SyntheticError(f"psf_sigma must be a number of pixels in [0, 4] (0 = no blur), "
+                                 f"got {self.psf_sigma!r}")
         if self.psf_sigma > 0 and self.supersample < 4:
             raise SyntheticError(f"psf_sigma > 0 blurs the image of the sub-pixel strata and needs supersample ≥ 4, "
                                  f"got supersample={self.supersample}")
