@@ -5,6 +5,8 @@
     shadecap reconstruct DATASET --out DIR [--model NAME|auto] [...]
     shadecap export-atlas RECON_DIR... --out DIR [...]
     shadecap import {colmap,transforms,opencv} SOURCE --mesh M --out DIR [--images DIR] [--flash X,Y,Z] [...]
+    shadecap calibrate-lights DATASET (--card-masks DIR | --uv-mask FILE) --albedo 0.18 --out NEW_DATASET
+    shadecap merge-hdr IMG... --times T... --out FILE.exr
     shadecap models                                    list every reflectance model
 
 Errors a user can fix (bad dataset, unknown model, existing output folder, an output that would
@@ -338,6 +340,73 @@ def _add_import_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
 
 
+def _cmd_calibrate_lights(args) -> int:
+    from capture.photometric import UVRegion, calibrate_lights
+
+    if (args.card_masks is None) == (args.uv_mask is None):
+        raise ValueError("calibrate-lights: give exactly one of --card-masks DIR (per-photo masks of the card, named "
+                         "like the photos) or --uv-mask FILE (a texture-space mask of the known-albedo region)")
+    region = UVRegion(Path(args.uv_mask)) if args.uv_mask else Path(args.card_masks)
+    albedo = _floats3(args.albedo, "--albedo", grey=True)
+    cal = calibrate_lights(args.dataset, region, albedo, share=args.share, out=args.out, overwrite=args.overwrite)
+    print(cal.summary())
+    print(f"wrote {cal.out} (the dataset with the calibrated light intensities)")
+    return 0
+
+
+def _add_calibrate_lights_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", help="dataset folder whose light intensities are unknown or approximate")
+    p.add_argument("--card-masks", metavar="DIR", help="folder of masks of the card (or known-albedo region) per "
+                   "photo, named like the photos (images/000.exr → 000.png; nonzero = card); photos without one "
+                   "are not used")
+    p.add_argument("--uv-mask", metavar="FILE", help="texture-space mask (PNG, row 0 = v = 1, nonzero = the region) "
+                   "of a known-albedo region of the mesh")
+    p.add_argument("--albedo", required=True, metavar="A or R,G,B",
+                   help="the region's linear diffuse albedo (0.18 for a grey card); it is taken as Lambertian")
+    p.add_argument("--share", choices=("index", "each", "all"), default="index",
+                   help="index: light j of every photo is one light (default); each: every entry its own; all: one "
+                        "scale of the declared intensities for every light")
+    p.add_argument("--out", required=True, help="new dataset folder to write (the input is not changed)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+
+
+def _cmd_merge_hdr(args) -> int:
+    import torch
+
+    from capture.outputs import check_output
+    from capture.photometric import merge_hdr
+    from renderer.imageio import write_exr
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".exr":
+        raise ValueError(f"{out}: --out must be an .exr file (the merged linear radiance)")
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"{out}: the output file already exists; choose another name or pass --overwrite")
+    if any(Path(x).resolve() == out.resolve() for x in args.images):
+        raise ValueError(f"{out}: the output is one of the brackets; choose another name")
+    check_output(out.parent / f".{out.name}.check", force=True)
+    res = merge_hdr(args.images, args.times, response=args.response, saturation=args.saturation)
+    write_exr(out, res.radiance)
+    rng = res.radiance[torch.isfinite(res.radiance)]
+    print(f"wrote {out} ({res.radiance.shape[1]}x{res.radiance.shape[0]}, {len(args.images)} brackets, response "
+          f"{res.response}; radiance {float(rng.min()):.4g}..{float(rng.max()):.4g}; "
+          f"{int(res.saturated.sum())} px saturated in every bracket, {int(res.underexposed.sum())} px below the "
+          f"noise floor in every bracket)")
+    return 0
+
+
+def _add_merge_hdr_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("images", nargs="+", help="the bracketed exposures (EXR, 16-bit TIFF/PNG linear; 8-bit "
+                   "JPEG/PNG: response estimated)")
+    p.add_argument("--times", nargs="+", type=float, required=True, metavar="T",
+                   help="exposure time of each image, in the same order")
+    p.add_argument("--response", choices=("auto", "linear", "srgb", "estimate"), default="auto",
+                   help="auto: 8-bit → estimate (OpenCV Debevec), otherwise linear")
+    p.add_argument("--saturation", type=float, default=None, help="clipping level in decoded units (default 1.0)")
+    p.add_argument("--out", required=True, help="the merged .exr to write")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="shadecap", description="Differentiable material capture (see README.md).")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -362,6 +431,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("import", help="import a real capture (COLMAP, transforms.json, OpenCV YAML) as a dataset")
     _add_import_args(p)
     p.set_defaults(func=_cmd_import)
+    p = sub.add_parser("calibrate-lights", help="estimate the lights' intensities from a grey card or a known-albedo "
+                       "region; write a new dataset")
+    _add_calibrate_lights_args(p)
+    p.set_defaults(func=_cmd_calibrate_lights)
+    p = sub.add_parser("merge-hdr", help="merge bracketed exposures into one linear radiance EXR")
+    _add_merge_hdr_args(p)
+    p.set_defaults(func=_cmd_merge_hdr)
     p = sub.add_parser("models", help="list every reflectance model with its parameters")
     p.set_defaults(func=_cmd_models)
     return ap
