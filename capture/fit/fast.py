@@ -18,6 +18,7 @@ from .joint import refine_joint
 from .layout import ACC, FitResult, Layout, SolverError, from_canonical, param_groups
 from .noise import check_noise, default_delta, noise_floor
 from .observability import anchors_at, determined, finalize, find_anchors, posterior_std, pull_push
+from .operators import pixel_operator
 from .options import FitOptions
 from .sharing import material_targets, share_materials, shared_default, unmatched_texels
 from .texel import (
@@ -228,6 +229,7 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
         info.update(jinfo)
         history.append(jinfo["joint_history"][-1])
     if footprints is not None:
+        footprints = pixel_operator(footprints, T)      # built once for the footprint steps and the posterior
         steps = FOOTPRINT_STEPS if footprint_iterations is None else int(footprint_iterations)
         if steps > 0:
             def footprint_steps(start, n, weight, target=None):

@@ -16,7 +16,7 @@ from ..observations import Observations
 from .layout import ACC, MAX_STEP, Layout, SolverError
 from .noise import NOISE, irls_weights, noise_sigma, photo_noise_ratio, robust_rho
 from .observability import std_threshold
-from .operators import PixelOperator, sampling_operator
+from .operators import pixel_operator, sampling_operator
 from .sharing import shared_default
 from .texel import jacobian, weighted_cost
 
@@ -277,7 +277,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     else:
         idx, bw = obs.texel[:, None], torch.ones(obs.n_samples, 1, dtype=ACC, device=obs.device)
     T, P = theta.shape
-    pix = PixelOperator(footprints, T) if footprints is not None else None
+    pix = pixel_operator(footprints, T) if footprints is not None else None
     y = pix.y if pix is not None else obs.radiance.to(ACC)
     n_res = float(3 * pix.R) if pix is not None else float(3 * obs.weight.to(ACC).sum())
     eye = torch.eye(P, dtype=ACC, device=theta.device)

@@ -25,7 +25,7 @@ from materials.params import ParamSpec
 from ..observations import Observations
 from .layout import ACC, FitResult, Layout, SolverError
 from .noise import NOISE, check_noise, irls_weights, moderated_misfit, noise_sigma, photo_noise_ratio
-from .operators import PixelOperator, sampling_operator
+from .operators import pixel_operator, sampling_operator
 from .texel import jacobian
 
 __all__ = ["OBSERVABLE_STD", "RESOLVED_SHARE", "ANCHOR_MIN_FRACTION", "ANCHOR_LOOSENING", "std_threshold",
@@ -120,7 +120,7 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
     T, P = canon.shape
     with torch.no_grad():
         if footprints is not None:
-            op = PixelOperator(footprints, T)
+            op = pixel_operator(footprints, T)
             pred, C = op.linearise(model, layout, canon, groups)
             y = op.y
             r = y - pred
@@ -199,7 +199,7 @@ def finalize(model: Model, layout: Layout, obs: Observations, theta: Tensor, gro
     if footprints is not None:
         # through the footprint operator the block std holds the neighbours fixed: a texel every pixel mixes
         # with its neighbours is not determined by the data alone, however small that std
-        resolved = PixelOperator(footprints, H * W).dominance() >= RESOLVED_SHARE
+        resolved = pixel_operator(footprints, H * W).dominance() >= RESOLVED_SHARE
         info["resolved_fraction"] = float(resolved[observed].float().mean()) if bool(observed.any()) else 0.0
     info["posterior_s"] = time.perf_counter() - t_post
     params = layout.unpack(theta.detach().to(obs.dtype))
