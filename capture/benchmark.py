@@ -531,6 +531,14 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     return table
 
 
+#: The lines above the independent benchmark's table in docs/benchmarks.md: what it measures and how to regenerate it.
+INDEPENDENT_INTRO = (
+    "Reconstruction of Mitsuba 3 renders (docs/independent-renders.md) with the model that rendered them: RMSE per "
+    "texel set (docs/image-formation.md, \"What to expect\"), albedo / f0 / roughness r / roughness α. Regenerate: "
+    "`python scripts/make_independent_fixtures.py --out DIR --full --spp 64`, then `python scripts/benchmark.py "
+    "independent --datasets tests/fixtures/mitsuba/* DIR/* --out docs/benchmarks.md`.\n\n")
+
+
 def run_independent_benchmark(datasets, out: str | None = None, threads: int | None = None) -> str:
     """Reconstruct datasets whose photos another renderer made (docs/independent-renders.md) with the model that
     rendered them, fitting pixel centres and pixel footprints, and tabulate time, χ², worst view and the RMSE per
@@ -547,8 +555,8 @@ def run_independent_benchmark(datasets, out: str | None = None, threads: int | N
 
     rows = [f"Machine: {machine_description('cpu', threads)}", "",
             "| scene | fit | time | χ² / residual | worst view | well lit | well lit, ≥ 1 pixel "
-            "| well lit, highlight |",
-            "|---|---|---|---|---|---|---|---|"]
+            "| well lit, highlight | well lit, visible highlight |",
+            "|---|---|---|---|---|---|---|---|---|"]
     for path in datasets:
         ds = load_dataset(path, check_images=False)
         model = model_label(ds.gt.model)
@@ -562,13 +570,18 @@ def run_independent_benchmark(datasets, out: str | None = None, threads: int | N
 
             def cell(name, sets=sets):
                 v = sets.get(name)
+                if v and not v["texels"]:
+                    return "no texel"
                 return " / ".join(f"{e:.4f}" for n, e in v.items() if n != "texels") if v else "–"
 
-            rows.append(f"| {Path(path).name} | {'footprints' if fp else 'pixel centres'} | {dt:.1f} s | "
+            size = (f"{len(ds.views)} × {ds.views[0].camera.width}², "
+                    f"{int(next(iter(ds.gt.maps.values())).shape[0])}² maps")
+            rows.append(f"| {Path(path).name}, {size} | {'footprints' if fp else 'pixel centres'} | {dt:.1f} s | "
                         f"{r.fit['chi2_per_residual']:.3g} | {min(v['psnr'] for v in r.views):.1f} dB | "
-                        f"{cell('well_lit')} | {cell('well_lit_pixel_sized')} | {cell('well_lit_highlight')} |")
+                        f"{cell('well_lit')} | {cell('well_lit_pixel_sized')} | {cell('well_lit_highlight')} | "
+                        f"{cell('well_lit_visible_highlight')} |")
             print(rows[-1], flush=True)
     text = "\n".join(rows) + "\n"
     if out:
-        replace_section(Path(out), "independent", "## Photos another renderer made\n\n" + text)
+        replace_section(Path(out), "independent", "## Photos another renderer made\n\n" + INDEPENDENT_INTRO + text)
     return text

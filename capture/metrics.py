@@ -24,7 +24,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["map_errors", "observability_errors", "determined_at_truth", "image_metrics", "MetricsError",
-           "texel_normals", "coverage_advice", "HIGHLIGHT_DEG", "ADVICE_MIN_FRACTION"]
+           "texel_normals", "coverage_advice", "HIGHLIGHT_DEG", "ADVICE_MIN_FRACTION", "well_lit_texels",
+           "pixel_sized_texels", "highlight_texels", "visible_lobe_texels", "VISIBLE_LOBE_RATIO"]
 
 
 class MetricsError(ValueError):
@@ -221,6 +222,28 @@ def pixel_sized_texels(fp) -> Tensor:
     out = torch.zeros(H * W, dtype=torch.bool, device=fp.device)
     out[fp.samples.texel[small]] = True
     return out.reshape(H, W)
+
+
+#: Smallest peak ratio of a GGX lobe to the diffuse term under which a highlight counts as visible
+#: (:func:`visible_lobe_texels`): a lobe at a quarter of the diffuse radiance is 25 × the 1 % photo noise the
+#: solver assumes. The broad, faint lobe of a rough dielectric (f0 0.04, r 0.75 over albedo 0.54: ratio 0.06)
+#: is below it: its roughness hardly changes a pixel (docs/image-formation.md, "What to expect").
+VISIBLE_LOBE_RATIO = 0.25
+
+
+def visible_lobe_texels(maps: Mapping[str, Tensor], min_ratio: float = VISIBLE_LOBE_RATIO) -> Tensor:
+    """``[H, W]`` bool: texels whose GGX lobe peaks at least ``min_ratio`` × their Lambert term at normal
+    incidence, ``f0 · D(n·h = 1) / 4  ≥  min_ratio · ρ / π`` with ``D(1) = 1 / (π α²)``, i.e.
+    ``f0 / (4 α² ρ) ≥ min_ratio`` (channel means; α = r²). ``maps``: canonical maps with ``f0`` and ``roughness``,
+    ``albedo`` optional (0: any lobe is visible)."""
+    if "f0" not in maps or "roughness" not in maps:
+        raise MetricsError(f"visible_lobe_texels needs 'f0' and 'roughness' maps, got {sorted(maps)}")
+    from materials.roughness import roughness_to_alpha
+
+    f0 = maps["f0"].double().mean(-1)
+    alpha = roughness_to_alpha(maps["roughness"].double().mean(-1))
+    rho = maps["albedo"].double().mean(-1) if "albedo" in maps else torch.zeros_like(f0)
+    return f0 >= min_ratio * 4.0 * alpha.square() * rho
 
 
 def highlight_texels(obs, roughness: Tensor, min_angle_deg: float = 1.0) -> Tensor:

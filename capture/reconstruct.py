@@ -802,7 +802,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
         # the texel sets the image-formation targets are stated on (docs/image-formation.md): well lit, and of
         # those the ones that cover at least a pixel in some view and, for specular maps, seen inside a highlight
-        from .metrics import highlight_texels, pixel_sized_texels, well_lit_texels
+        from .metrics import highlight_texels, pixel_sized_texels, visible_lobe_texels, well_lit_texels
 
         lit = well_lit_texels(obs)
         sets = {"well_lit": lit}
@@ -810,6 +810,10 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             sets["well_lit_pixel_sized"] = lit & pixel_sized_texels(fp)
         if "roughness" in ds.gt.maps and tuple(ds.gt.maps["roughness"].shape[:2]) == tuple(obs.map_size):
             sets["well_lit_highlight"] = lit & highlight_texels(obs, ds.gt.maps["roughness"])
+            if "f0" in ds.gt.maps:
+                # of those, the texels whose lobe stands out of the diffuse term (a faint broad lobe barely shapes a
+                # pixel, and its roughness trades with the albedo inside the noise)
+                sets["well_lit_visible_highlight"] = sets["well_lit_highlight"] & visible_lobe_texels(ds.gt.maps)
         # roughness also as GGX/Beckmann α = r², the unit most renderers take
         with_alpha = (lambda d: {**d, "roughness_alpha": roughness_to_alpha(d["roughness"])}
                       if "roughness" in d else d)

@@ -121,7 +121,8 @@ def test_missing_mitsuba_exits_with_the_install_command(script, monkeypatch):
 # torus: χ² per residual 0.18, albedo RMSE 0.0119 on well-lit texels and 0.0012 on the well-lit ones that cover at
 # least a pixel; fitting pixel centres instead: χ² 78.7, worst view 34.9 dB, 0.0419. Sphere (Lambert + GGX, F = 1):
 # χ² 0.55, albedo / f0 0.0042 / 0.0189 on the pixel-sized well-lit texels, f0 / roughness 0.0115 / 0.088 on the
-# well-lit highlight texels; pixel centres χ² 57.3, 39.4 dB. Asserted with margins of about 2×; the pixel centres'
+# well-lit highlight texels, albedo / f0 / α 0.0016 / 0.0057 / 0.0123 on those whose lobe is visible (peak ≥ ¼ of the
+# diffuse term); pixel centres χ² 57.3, 39.4 dB. Asserted with margins of about 2×; the pixel centres'
 # χ² is far above every bound.
 def _recon(path, model, tmp_path):
     from capture.reconstruct import reconstruct
@@ -146,6 +147,9 @@ def test_footprint_fit_explains_the_mitsuba_ggx_sphere(mitsuba_scene, tmp_path):
     assert r.fit["chi2_per_residual"] < 1.2 and min(v["psnr"] for v in r.views) > 50.0
     assert sets["well_lit_pixel_sized"]["albedo"] < 0.01 and sets["well_lit_pixel_sized"]["f0"] < 0.04
     assert sets["well_lit_highlight"]["f0"] < 0.025 and sets["well_lit_highlight"]["roughness"] < 0.15
+    visible = sets["well_lit_visible_highlight"]
+    assert visible["texels"] > 200
+    assert visible["albedo"] < 0.005 and visible["f0"] < 0.012 and visible["roughness_alpha"] < 0.025
 
 
 def test_cameras_in_another_renderers_frame_are_reported_not_passed(mitsuba_scene, tmp_path):

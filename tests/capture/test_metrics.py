@@ -146,3 +146,20 @@ def test_texel_normals_of_a_plane():
         texel_normals(plane(), (16, 0))
     with pytest.raises(MetricsError, match="Mesh"):
         texel_normals(object(), (16, 16))
+
+
+def test_visible_lobe_texels_compare_the_ggx_peak_with_the_lambert_term():
+    """f0 / (4 α² ρ) against VISIBLE_LOBE_RATIO, by hand: the rough dielectric of the synthetic regions (f0 0.04,
+    r 0.75, ρ 0.54) has 0.04 / (4 · 0.5625² · 0.54) = 0.059, a smooth dielectric (f0 0.05, r 0.25, ρ 0.32) 9.8,
+    gold (f0 0.72, r 0.35, ρ 0) is always visible; the threshold is inclusive."""
+    from capture.metrics import VISIBLE_LOBE_RATIO, MetricsError, visible_lobe_texels
+
+    f0 = torch.tensor([0.04, 0.05, 0.72, 0.25]).reshape(2, 2, 1).expand(2, 2, 3)
+    r = torch.tensor([0.75, 0.25, 0.35, 1.0]).reshape(2, 2, 1)
+    rho = torch.tensor([0.54, 0.32, 0.0, 0.25]).reshape(2, 2, 1).expand(2, 2, 3)
+    assert VISIBLE_LOBE_RATIO == 0.25
+    got = visible_lobe_texels({"f0": f0, "roughness": r, "albedo": rho})
+    assert got.tolist() == [[False, True], [True, True]]          # 0.25 / (4 · 1 · 0.25) = 0.25: on the threshold
+    assert visible_lobe_texels({"f0": f0, "roughness": r}).all()
+    with pytest.raises(MetricsError, match="roughness"):
+        visible_lobe_texels({"f0": f0})
