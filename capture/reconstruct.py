@@ -603,6 +603,10 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     report.samples = {"pixels": n_pix, "valid": obs.n_samples, "pairs": obs.n_pairs,
                       "lights": len(all_lights), "views": len(ds.views)}
     report.drops = dict(obs.drops)
+    if psf > 0 and fp_all is None:
+        report.warnings.append(f"the photos' pixel filter has a Gaussian blur (psf_sigma {psf:g} px) that only the "
+                               f"footprint fit models; this fit ({'pixel centres' if not footprint else solver}) "
+                               f"ignores it — use the fast solver with footprints")
     if fp_all is not None:
         report.samples["footprints"] = {
             "pixels": fp_all.n_pixels, "samples": fp_all.n_samples,

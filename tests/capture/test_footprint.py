@@ -141,6 +141,8 @@ def test_gaussian_psf_in_the_pixel_filter_explains_blurred_photos(tmp_path):
     err = {k: v.errors["maps_by_texel_set"]["well_lit"]["albedo"] for k, v in r.items()}
     assert chi2[None] < 1.0 and chi2[0.0] > 10 * chi2[None]
     assert err[None] < 0.065 and err[None] < 0.85 * err[0.0]
+    centres = reconstruct(ds, model="lambert", out_dir=tmp_path / "rc", progress=False, footprint=False)
+    assert any("psf_sigma 0.7" in w and "ignores it" in w for w in centres.warnings)
 
 
 def test_psf_sigma_is_validated_where_users_give_it(tmp_path):
