@@ -405,7 +405,7 @@ def _stages(model: str, solver: str, footprint: bool, sampling: str | None) -> d
     auto = model == "auto" and sum(m in materials.available() for m in AUTO_CANDIDATES) > 1
     fits_footprints = footprint and solver == "fast" and sampling in (None, "bilinear")
     return {k: w for k, w in RECONSTRUCT_STAGES.items()
-            if (k != "select" or auto) and (k != "footprints" or fits_footprints)
+            if (k != "select" or auto) and (k not in ("footprints", "footprint solve") or fits_footprints)
             and (k not in ("sharing", "joint") or solver == "fast")}
 
 
@@ -624,10 +624,10 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                                       f"views (holdout={held_views})")
 
     def cb(stage, it, cost):
-        # the solver's steps: its per-texel LM stages (the schedule's names), "share", "joint", "adam"
+        # the solver's steps: its per-texel LM stages (the schedule's names), "share", "joint", "footprint", "adam"
         if prog.stage != "select":
-            prog.start({"share": "sharing", "joint": "joint"}.get(stage, "solve"))
-        prog.tick(f"{'' if stage in ('share', 'joint', 'adam') else stage + ' '}loss {cost:.3e}")
+            prog.start({"share": "sharing", "joint": "joint", "footprint": "footprint solve"}.get(stage, "solve"))
+        prog.tick(f"{'' if stage in ('share', 'joint', 'footprint', 'adam') else stage + ' '}loss {cost:.3e}")
 
     # -- model selection --------------------------------------------------------------------------
     t = time.perf_counter()

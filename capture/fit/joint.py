@@ -444,7 +444,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                 accepted.append(False)
         history.append(cost / n_res)
         if progress is not None:
-            progress("joint", it + 1, history[-1])
+            progress("footprint" if pix is not None else "joint", it + 1, history[-1])
         if len(history) > 1 and history[-2] - history[-1] <= 1e-6 * history[-2]:
             break
     out = {"joint_s": time.perf_counter() - t0, "joint_history": history, "joint_accepted": accepted,

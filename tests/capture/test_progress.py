@@ -75,3 +75,14 @@ def test_reconstruct_walks_its_stages_in_order(tmp_path, monkeypatch):
     positions = [x for _, x in p.log]
     assert all(b >= a for a, b in zip(positions, positions[1:], strict=False))
     assert positions[-1] == p.total == 100.0
+    # with footprints (the default) the footprint observations and their solve are stages of their own, entered in
+    # order: the footprint solve reports its steps as "footprint", not as the bilinear "joint" refinement
+    runs.clear()
+    reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / "o2", progress=False)
+    (p,) = runs
+    assert p.names == ["load", "gbuffer", "observe", "footprints", "solve", "sharing", "joint", "footprint solve",
+                       "metrics", "outputs"]
+    stages = [s for s, _ in p.log]
+    order = [s for i, s in enumerate(stages) if s is not None and (i == 0 or s != stages[i - 1])]
+    assert "footprint solve" in order and order == [s for s in p.names if s in order]
+    assert p.log[-1][1] == 100.0
