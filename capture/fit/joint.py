@@ -28,7 +28,7 @@ __all__ = ["PRIOR_UNIT", "JOINT_ATTEMPTS", "refine_joint"]
 #: of its range) the prior smooths differences below 0.09 and charges larger ones linearly. Measured, all-texel
 #: albedo RMSE with the unit 0.01 / 0.03 / 0.1 / 0.3 / 1 / 3 (and with no albedo prior): default scene 0.0106 /
 #: 0.0097 / 0.0090 / 0.0089 / 0.0102 / 0.0116 (0.0161); the same with 64² maps 0.0147 / 0.0116 / 0.0085 / 0.0063 /
-#: 0.0062 / 0.0061 (0.0084); docs/reconstruction.md, "Session 5", for the other scenes.
+#: 0.0062 / 0.0061 (0.0084); docs/reconstruction.md, "the albedo joins the joint prior", for the other scenes.
 PRIOR_UNIT = {"albedo": 0.3}
 
 
@@ -75,8 +75,8 @@ class _SharingPrior:
         # bridges: observed texels two apart along a row or column with an unobserved one between them, as flat
         # index pairs [B] (few: 1 212 on the default scene, against 101 122 edges). Near a UV sphere's poles texels
         # are narrower than a pixel and some are read by no sample; without the bridges such a texel cut the chain
-        # and its observed neighbour was tied to one side only (default scene, docs/reconstruction.md "Session 8":
-        # all-texel albedo 0.0088 → 0.0062)
+        # and its observed neighbour was tied to one side only (default scene, docs/reconstruction.md "bridges
+        # across unobserved texels": all-texel albedo 0.0088 → 0.0062)
         flat = torch.arange(H * W, device=dev).reshape(H, W)
         row = ok[:, :-2] & ~ok[:, 1:-1] & ok[:, 2:]
         col = ok[:-2] & ~ok[1:-1] & ok[2:]
@@ -183,7 +183,7 @@ class _SharingPrior:
 
 
 #: Trial steps per outer iteration of :func:`refine_joint`, the damping λ growing ×4 after each rejected one
-#: (from ≥ 1e-9 up to ≥ 1e-3·4¹¹ ≈ 4 000 × the diagonal). With 4 (until session 7) a scene whose first step needed
+#: (from ≥ 1e-9 up to ≥ 1e-3·4¹¹ ≈ 4 000 × the diagonal). With 4 attempts a scene whose first step needed
 #: λ ≈ 0.26 never moved: the small fixed-rig scene (96 px, 32² maps) kept the sharing's proposal, all-texel albedo /
 #: f0 / roughness 0.078 / 0.082 / 0.255, worst view 29.8 dB; with 12 its 5th attempt is accepted and the refinement
 #: goes on: 0.031 / 0.059 / 0.155, 63.9 dB. Scenes whose steps are accepted at once are unchanged.
@@ -214,7 +214,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     trust region |Δθ_i| ≤ :data:`MAX_STEP` per component as :func:`solve_fast`.
 
     ``sharing > 0`` adds the edge-preserving prior of :class:`_SharingPrior` between 4-neighbour
-    observed texels (and, since session 8, observed texels two apart with an unobserved one between them)
+    observed texels (and observed texels two apart with an unobserved one between them)
     on ``sharing_params`` (default: every parameter, the albedo included): Huber on the
     differences in units of the observability thresholds, quadratic below ``sharing_delta``, with
     weight μ = ``sharing`` × the median data curvature of a one-threshold change (so ``sharing`` is
@@ -223,8 +223,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     default scene after :func:`capture.fit.sharing.share_materials` (2 outer iterations): RMSE on all
     observed texels albedo / f0 / roughness 0.026 / 0.031 / 0.079 without the prior, 0.017 / 0.024 /
     0.058 with μ = 1, δ = 1, 0.017 / 0.021 / 0.056 with δ = 0.3 (the default; 10 candidates); μ = 0.3 or 3 change
-    them by < 0.003. The albedo is in the prior's default set since session 5 (before: every parameter but
-    the albedo, which varies per texel by design), in units of :data:`PRIOR_UNIT` (0.3): where the photos
+    them by < 0.003. The albedo is in the prior's default set (leaving it out — it varies per texel by design — was
+    measured worse, below), in units of :data:`PRIOR_UNIT` (0.3): where the photos
     determine a texel's albedo the data win, where they barely do — texels read only through a neighbour's
     bilinear footprint, the grazing band — it follows its neighbours with the edges kept. μ is still calibrated
     on the material parameters (calibrating on the albedo's larger curvature too raised it for all: f0 0.0171
@@ -245,8 +245,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     ratios (2nd, 3rd iteration): default scene 0.0018, 0.0003; fixed rig 0.011, 0.0045; 1.3-texel checker
     1.6, 0.047; shot noise 3 000 e⁻ 24.7, 18.9 (unit 0.016) and on the small scene 59.9, 40.1 (unit 0.0075).
     All-texel albedo with / without the adaptation: shot noise 0.0264 / 0.0425, small scene with shot noise
-    0.0378 / 0.0438, 1.3-texel checker 0.0201 / 0.0195, noise-free scenes unchanged (ratio < 1). Since session 13
-    the ratio is at least the photos' noise measured in image space (:func:`photo_noise_ratio`) when the
+    0.0378 / 0.0438, 1.3-texel checker 0.0201 / 0.0195, noise-free scenes unchanged (ratio < 1). The
+    ratio is at least the photos' noise measured in image space (:func:`photo_noise_ratio`) when the
     observations carry residuals: default scene with 3 000 e⁻ all-texel albedo 0.0212 → 0.0191, with 1 000 e⁻ sRGB
     0.0333 → 0.0303 (f0 and roughness within ±0.0002). Using it instead of the fit's ratio, from the first iteration
     on, changed the noise-free stress rows whose fit misfits (grazing 3°, black albedo: worse) and cost the 300 e⁻
@@ -260,8 +260,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     flat (f0 against roughness in a metal seen without a highlight) more steps let whole regions drift along it:
     default scene, 6 steps × 50 CG iterations, f0 0.0159 → 0.0326 (gold and the smooth dielectric away from the
     highlights). With it (``anchor_weight`` 0.03, solve_fast's default) the same steps give 0.0087 / 0.0139 /
-    0.0510, and 6 × 30 — the default — 0.0088 / 0.0134 / 0.0515 against 0.0089 / 0.0159 / 0.0531 for the session-6
-    default (3 × 25, no anchor); docs/reconstruction.md, "Session 7", for the other scenes and weights.
+    0.0510, and 6 × 30 — the default — 0.0088 / 0.0134 / 0.0515 against 0.0089 / 0.0159 / 0.0531 for 3 × 25
+    without the anchor; docs/reconstruction.md, "the sharing's proposal as a prior", for the other scenes and weights.
 
     Returns:
         ``(theta [T, P], info)`` with the cost history, accepted steps and time.

@@ -50,14 +50,14 @@ class FitOptions:
             :func:`refine_joint`, ``joint_iterations`` joint LM steps with ``cg_iterations`` PCG
             iterations each). None = 6 steps × 30 CG iterations with the sharing (whose proposal prior,
             ``anchor_weight``, makes more steps safe), 3 × 25 without it. Measured on the default scene without
-            the sharing (session 4): 2 → 3 steps all-texel RMSE 0.0155 / 0.0165 / 0.0557 → 0.0161 / 0.0159 / 0.0532;
-            with it (session 7) 3 × 25 without the anchor 0.0089 / 0.0159 / 0.0531 (observable 0.0005 / 0.0017 /
+            the sharing: 2 → 3 steps all-texel RMSE 0.0155 / 0.0165 / 0.0557 → 0.0161 / 0.0159 / 0.0532;
+            with it 3 × 25 without the anchor 0.0089 / 0.0159 / 0.0531 (observable 0.0005 / 0.0017 /
             0.0018), 6 × 30 with it 0.0088 / 0.0134 / 0.0515 (0.0004 / 0.0011 / 0.0015), +2–3 s.
         pooled: tile size (texels) of the sharing's pooled proposals (:func:`capture.fit.sharing.share_materials`
             ``pool_block``; 0 = off, the default): tiles of non-anchor texels with no anchor nearby fit a material
             of their own on their pooled samples and propose it when it beats every candidate. For materials that
             give no anchor — a rough dielectric under fixed lights: all-texel roughness 0.109 → 0.048 there, but
-            the default (flash) scene's f0 0.0126 → 0.0294 (docs/reconstruction.md, "Session 10").
+            the default (flash) scene's f0 0.0126 → 0.0294 (docs/reconstruction.md, "second basins are local minima").
         anchor_weight: weight of the joint refinement's tie of each texel's material parameters to the sharing's
             proposal (:func:`refine_joint`; relative to the neighbour prior's data scale; 0 = off, only with the
             sharing). 0.03: the best of 0.01 / 0.03 / 0.1 on the default scene (6 × 50 steps: f0 0.0171 / 0.0139 /
@@ -83,8 +83,9 @@ class FitOptions:
             their material (:func:`capture.fit.sharing.unmatched_texels`) keep their own fit, the refinement runs
             again and the lower data cost wins (``info["sharing_fallback"]``). Layered scene of 128 px, 64² maps,
             coat given: data cost 0.024 → 0.0009 (per-texel fit 0.0049); with the coat fitted, worst / mean view
-            27.4 / 34.2 dB in session 5 → 40.1 / 46.5 dB (docs/reconstruction.md, "Session 6"); never triggered on
-            the GGX + Lambert scenes there. A second one: seeded from scarce anchors, materials whose refinement misses
+            27.4 / 34.2 dB without it → 40.1 / 46.5 dB (docs/reconstruction.md, "candidate materials the photos
+            do not need"); never triggered on the GGX + Lambert scenes there. A second one: seeded from scarce
+            anchors, materials whose refinement misses
             the photos by more than their noise allows are seeded again from more texels, and the photos judge
             (:data:`ANCHOR_RETRY_FACTOR`, ``info["share_retry"]``).
         footprint_iterations: LM steps of that final solve (default :data:`FOOTPRINT_STEPS`).

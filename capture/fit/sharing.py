@@ -28,9 +28,9 @@ albedo, for exactly the flash-light setting), :func:`share_materials`
    candidate, albedo held); steps 2–4 run ``rounds`` times.
 
 Anchors keep their own fit. Measured on the default scene (docs/reconstruction.md, "Reflectance
-sharing" and "Session 4"): RMSE on all observed texels albedo / f0 / roughness 0.0805 / 0.1963 / 0.1892
-→ 0.0089 / 0.0159 / 0.0531 after the joint refinement (0.0161 / 0.0159 / 0.0532 before the albedo joined its
-prior, session 5); this stage takes ~5 s of the 20–24 (2 threads).
+sharing" and "speed, 3 joint steps"): RMSE on all observed texels albedo / f0 / roughness 0.0805 / 0.1963 / 0.1892
+→ 0.0089 / 0.0159 / 0.0531 after the joint refinement (0.0161 / 0.0159 / 0.0532 without the albedo in its
+prior); this stage takes ~5 s of the 20–24 (2 threads).
 
 The result initialises the joint refinement, whose edge-preserving prior
 (:func:`capture.fit.joint.refine_joint` ``sharing=``) then lets well-observed texels depart from their
@@ -63,7 +63,7 @@ __all__ = ["share_materials", "unmatched_texels", "kmeans_pp", "pooled_materials
 
 #: χ² evidence (summed over the texels that prefer it, :func:`_supported`) below which a candidate material is
 #: dropped: 10 texels' worth of the assignment's evidence margin. Measured: duplicates and border mixtures 0–82,
-#: real materials ≥ 502 (docs/reconstruction.md, "Session 6").
+#: real materials ≥ 502 (docs/reconstruction.md, "candidate materials the photos do not need").
 MIN_EVIDENCE = 100.0
 
 
@@ -76,7 +76,7 @@ def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, itera
     :class:`kornia.contrib.KMeans` started from those seeds; ``restarts`` draws, keeping the centres with
     the least within-cluster sum of squares (as scikit-learn's ``n_init``). One draw left the default scene's
     outcome to chance: the k-means seed alone moved its all-texel f0 / roughness over 0.013–0.030 /
-    0.049–0.074 (docs/reconstruction.md, "Session 10").
+    0.049–0.074 (docs/reconstruction.md, "second basins are local minima").
     """
     if x.dim() != 2 or x.shape[0] == 0:
         raise ValueError(f"kmeans_pp: x must be [N, D] with N ≥ 1, got {tuple(x.shape)}")
@@ -395,7 +395,8 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
             :data:`MIN_EVIDENCE`); 0 = keep every candidate. Measured (default scene's rig, RMSE on all observed
             texels albedo / f0 / roughness): 3 materials 0.0120 / 0.0834 / 0.0858 → 0.0081 / 0.0108 / 0.0160,
             2 materials 0.0049 / 0.0025 / 0.0241 → 0.0044 / 0.0023 / 0.0112, 6 materials unchanged (every
-            candidate needed); docs/reconstruction.md, "Session 6", for the small scenes.
+            candidate needed); docs/reconstruction.md, "candidate materials the photos do not need", for the
+            small scenes.
         evidence: χ² margin (noise model ``noise``) by which the best candidate must beat the second
             best before a texel is decided at a scale; candidates its own samples put further than
             this above their best are never assigned to it.
@@ -405,10 +406,10 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
             texels, pooled, fit a material of their own better than every candidate by ``pool_evidence`` χ²
             (:func:`pooled_materials`, :func:`_propose_pooled`) add up to ``pool_candidates`` materials, which
             the pruning then keeps or drops like the others. For a material that gives no anchor (a rough
-            dielectric under fixed lights). Measured (docs/reconstruction.md, "Session 10"; RMSE on all observed
-            texels albedo / f0 / roughness, off → 4): fixed-light rig 0.0104 / 0.0130 / 0.1089 → 0.0093 / 0.0119
-            / 0.0481, shot noise 0.0245 / 0.1381 / 0.1589 → 0.0244 / 0.1035 / 0.1524, but the default scene
-            0.0062 / 0.0126 / 0.0510 → 0.0082 / 0.0294 / 0.0617 — hence off by default.
+            dielectric under fixed lights). Measured (docs/reconstruction.md, "second basins are local minima";
+            RMSE on all observed texels albedo / f0 / roughness, off → 4): fixed-light rig 0.0104 / 0.0130 /
+            0.1089 → 0.0093 / 0.0119 / 0.0481, shot noise 0.0245 / 0.1381 / 0.1589 → 0.0244 / 0.1035 / 0.1524,
+            but the default scene 0.0062 / 0.0126 / 0.0510 → 0.0082 / 0.0294 / 0.0617 — hence off by default.
         seed: seed of the k-means++ draw.
 
     Returns:
@@ -614,7 +615,7 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
     every material of the noise-free scenes settles within 2–3 iterations (relative change < 1e-6 after
     the second), one of the shot-noise scene's still drops 2 % at the fourth. Sharing stage 5.2 → 3.5 s on
     the default scene, 5.0 → 4.3 s with shot noise, maps unchanged to 4 decimals (docs/reconstruction.md,
-    "Session 11")."""
+    "k-means restarts and reverse-mode Jacobians")."""
     K = mat.shape[0]
     Ps = len(scols)
     dev = y.device

@@ -385,9 +385,10 @@ def _grid_search(model: Model, layout: Layout, obs: Observations, theta: Tensor,
 #: 5 — LM 3.2–3.4 → 1.4–2.0 s, the same maps to 4 decimals but 3 materials (0.0057 / 0.0078 / 0.0132 → 0.0059 /
 #: 0.0069 / 0.0134, observable and determined-at-the-truth texels unchanged); the fixed-light rig (drops of 2e-3–6e-3
 #: until the 14th) and the layered 128-px scene (1e-2–5e-1 for 20 iterations) run all 10, as before. A fixed 5 broke
-#: the layered fallback test scene (session 11), which keeps dropping fast; 40 with this rule let the layered scene run
+#: the layered fallback test scene, which keeps dropping fast; 40 with this rule let the layered scene run
 #: 33 (determined-at-the-truth 0.149 / 0.105 / 0.078 / 0.153 → 0.094 / 0.088 / 0.077 / 0.136 but all-texel f0 0.202
-#: → 0.217 and more texels called observable at a wrong albedo; docs/reconstruction.md, "Session 12") — not the default.
+#: → 0.217 and more texels called observable at a wrong albedo; docs/reconstruction.md, "errors on what the photos
+#: determine at the truth") — not the default.
 BILINEAR_LM_TOL = 1e-3
 BILINEAR_LM_MIN = 5
 
@@ -476,7 +477,7 @@ def per_texel_lm(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                 # units), so that a poor linearisation cannot throw a parameter into the flat tail of
                 # its sigmoid (dp/dθ ≈ 0) from where it would never return. Per component, not by
                 # scaling the whole step: a near-null column (absorption on its softplus floor) has an
-                # enormous damped step, and scaling by it froze every other parameter (session 4)
+                # enormous damped step, and scaling by it froze every other parameter
                 step = step.clamp(-MAX_STEP, MAX_STEP)
                 trial = theta + step
                 pred_t = obs.predict(model, layout.unpack(torch.index_select(trial, 0, obs.texel).to(obs.dtype))) \
