@@ -43,6 +43,7 @@ from torch import Tensor
 from materials import Model, SumModel
 from materials import get as get_model
 from renderer.camera import Camera, CameraError
+from renderer.gbuffer import check_psf_sigma
 from renderer.imageio import ImageIOError, decode, read_exr, read_png, read_raster, write_exr, write_png
 from renderer.lights import LightError, PointLight, light_from_dict, light_to_dict
 from renderer.mesh import Mesh, MeshError, load_mesh, save_mesh
@@ -776,10 +777,11 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
     else:
         saturation = _number(saturation, scene, "saturation", positive=True, allow_none=True)
     # the photos' pixel filter: the box, convolved with a Gaussian of psf_sigma pixels (lens blur, demosaicing)
-    psf_sigma = _number(doc.get("psf_sigma", 0.0), scene, "psf_sigma", nonneg=True)
-    if psf_sigma > 4:
-        raise _err(scene, "psf_sigma", f"must be a blur σ in pixels in [0, 4], got {psf_sigma!r}",
-                   "measure it from a slanted edge, or leave it out for a sharp camera (box filter)")
+    try:
+        psf_sigma = check_psf_sigma(doc.get("psf_sigma", 0.0))
+    except ValueError as exc:
+        raise _err(scene, "psf_sigma", str(exc), "measure it from a slanted edge, or leave it out for a sharp "
+                   "camera (box filter)") from None
 
     # mesh
     mesh_path = _relative_file(root, doc["mesh"], scene, "mesh")
@@ -1043,8 +1045,10 @@ def write_dataset(
     if masks is not None and len(masks) != len(views):
         raise DatasetError(f"write_dataset: masks must hold one entry (a mask or None) per view, got {len(masks)} for "
                            f"{len(views)} views")
-    if isinstance(psf_sigma, bool) or not isinstance(psf_sigma, (int, float)) or not 0 <= psf_sigma <= 4:
-        raise DatasetError(f"write_dataset: psf_sigma must be a blur σ in pixels in [0, 4], got {psf_sigma!r}")
+    try:
+        psf_sigma = check_psf_sigma(psf_sigma)
+    except ValueError as exc:
+        raise DatasetError(f"write_dataset: {exc}") from None
     check_output(out, force=overwrite, error=DatasetError, force_flag="overwrite=True (--overwrite)")
     if encoding == "srgb" and saturation is None:
         saturation = (1 << bits) - 1

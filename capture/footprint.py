@@ -46,6 +46,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from materials.model import Model
+from renderer.gbuffer import footprint_extent, render_footprint
+from renderer.shading import prepare
 
 from .observations import ObservationError, Observations, noise_residual, observe_views
 
@@ -214,8 +216,6 @@ def _curvature(photo: Tensor) -> Tensor:
 def footprint_max(psf_sigma: float = 0.0) -> int:
     """Largest k for a pixel filter: :data:`FOOTPRINT_MAX` over the box's square, as many per pixel width over the
     wider square of a Gaussian PSF (:func:`renderer.gbuffer.footprint_extent`), at most 16."""
-    from renderer.gbuffer import footprint_extent
-
     return min(16, math.ceil(FOOTPRINT_MAX * footprint_extent(psf_sigma) - 1e-9))
 
 
@@ -239,8 +239,6 @@ def footprint_counts(gbuffer, map_size: tuple[int, int],
     depth[gbuffer.pixel] = gbuffer.depth.to(torch.float64)
     hit2 = hit.reshape(H, W)
     f, edge = _grad_len(uv.reshape(H, W, 2), hit2, depth.reshape(H, W), map_size)
-    from renderer.gbuffer import footprint_extent
-
     extent, kmax = footprint_extent(psf_sigma), footprint_max(psf_sigma)
     k = torch.ceil(f * extent / FOOTPRINT_SPACING)
     if photo is not None:
@@ -275,8 +273,6 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
     Raises:
         ObservationError: mismatched lists or no valid pixel in any view.
     """
-    from renderer.gbuffer import render_footprint
-    from renderer.shading import prepare
 
     n = len(cameras)
     if not (len(lights_per_view) == len(centre_gbuffers) == len(photos) == n) or n == 0:

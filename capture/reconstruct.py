@@ -50,6 +50,7 @@ from torch import Tensor
 
 from materials import KnownParams
 from materials.roughness import half_max_angle, roughness_to_alpha
+from renderer.gbuffer import check_psf_sigma
 
 from .fit import LOSSES, NOISE, FitResult, SolverError, photo_noise_ratio, photo_sigma, solve_adam, solve_fast
 from .fit.options import FitOptions
@@ -580,10 +581,10 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
 
     obs = observe(texture_size)
     fp_all = fp = held_fp = None
-    psf = ds.psf_sigma if psf_sigma is None else psf_sigma
-    if isinstance(psf, bool) or not isinstance(psf, (int, float)) or not 0 <= psf <= 4:
-        raise ReconstructionError(f"psf_sigma must be a blur σ in pixels in [0, 4] or None (the dataset's), "
-                                  f"got {psf_sigma!r}")
+    try:
+        psf = ds.psf_sigma if psf_sigma is None else check_psf_sigma(psf_sigma)
+    except ValueError as exc:
+        raise ReconstructionError(f"{exc}; or None for the dataset's") from None
     if footprint and solver == "fast" and sampling == "bilinear":
         from .footprint import observe_footprints, saving
 

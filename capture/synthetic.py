@@ -68,7 +68,7 @@ from materials import presets as _presets
 from materials.fresnel import ior_from_f0
 from materials.roughness import half_max_angle
 from renderer.camera import Camera, orbit, random_rig, turntable
-from renderer.gbuffer import render_gbuffer
+from renderer.gbuffer import check_psf_sigma, render_gbuffer
 from renderer.lights import PointLight
 from renderer.mesh import Mesh, load_mesh, nonconvex, plane, save_mesh, torus, uv_sphere
 from renderer.shading import prepare, shade
@@ -177,10 +177,10 @@ class SyntheticConfig:
             if isinstance(x, bool) or not isinstance(x, int) or x < (0 if name == "seed" else 1):
                 raise SyntheticError(f"{name} must be a {'non-negative' if name == 'seed' else 'positive'} integer, "
                                      f"got {x!r}")
-        if isinstance(self.psf_sigma, bool) or not isinstance(self.psf_sigma, (int, float)) \
-                or not 0 <= self.psf_sigma <= 4:
-            raise SyntheticError(f"psf_sigma must be a number of pixels in [0, 4] (0 = no blur), "
-                                 f"got {self.psf_sigma!r}")
+        try:
+            check_psf_sigma(self.psf_sigma)
+        except ValueError as exc:
+            raise SyntheticError(str(exc)) from None
         if self.psf_sigma > 0 and self.supersample < 4:
             raise SyntheticError(f"psf_sigma > 0 blurs the image of the sub-pixel strata and needs supersample ≥ 4, "
                                  f"got supersample={self.supersample}")

@@ -35,7 +35,7 @@ from .camera import Camera, check_supersample
 from .mesh import Mesh
 
 __all__ = ["GBuffer", "render_gbuffer", "render_footprint", "intersect", "intersect_faces", "pixel_filter",
-           "footprint_extent", "PSF_SUPPORT"]
+           "footprint_extent", "check_psf_sigma", "PSF_SUPPORT", "PSF_MAX_SIGMA"]
 
 
 @dataclass
@@ -233,12 +233,24 @@ def _cast(mesh: Mesh, camera: Camera, xy: Tensor, pixel: Tensor, weight: Tensor,
 PSF_SUPPORT = 3.0
 
 
+#: Largest Gaussian PSF σ (pixels): its filter square is then 25 pixels wide, which the 16 × 16 cap of
+#: :func:`render_footprint` samples 1.6 pixels apart — coarser would no longer integrate it.
+PSF_MAX_SIGMA = 4.0
+
+
+def check_psf_sigma(psf_sigma) -> float:
+    """A Gaussian PSF σ in pixels as a float, or ValueError naming the allowed range (the one check of every
+    place that takes it: scene.json, synthetic scenes, reconstruct, the footprints)."""
+    if isinstance(psf_sigma, bool) or not isinstance(psf_sigma, (int, float)) or not 0 <= psf_sigma <= PSF_MAX_SIGMA:
+        raise ValueError(f"psf_sigma must be a blur σ in pixels in [0, {PSF_MAX_SIGMA:g}] (0 = the box filter "
+                         f"alone), got {psf_sigma!r}")
+    return float(psf_sigma)
+
+
 def footprint_extent(psf_sigma: float) -> float:
     """Side (pixels) of the square a pixel's filter covers: 1 for the box, ``1 + 2·PSF_SUPPORT·σ`` with a
     Gaussian PSF of σ pixels."""
-    if isinstance(psf_sigma, bool) or not isinstance(psf_sigma, (int, float)) or not 0 <= psf_sigma <= 4:
-        raise ValueError(f"psf_sigma must be a number of pixels in [0, 4] (0 = box filter only), got {psf_sigma!r}")
-    return 1.0 + 2.0 * PSF_SUPPORT * float(psf_sigma)
+    return 1.0 + 2.0 * PSF_SUPPORT * check_psf_sigma(psf_sigma)
 
 
 def pixel_filter(offset: Tensor, psf_sigma: float) -> Tensor:
