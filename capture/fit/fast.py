@@ -141,7 +141,7 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
     info.update(lm_info)
     it = lm_info["lm_iterations"]
     if share or (joint and fill_before_joint):
-        canon = torch.cat([layout.unpack(theta)[s.name] for s in layout.specs], -1)
+        canon = layout.canonical(theta)
         std, observed_n, _ = posterior_std(model, layout, obs, canon, groups, loss=loss, delta=delta, noise=noise)
         good = determined(layout, std, observed_n, observable_std)
     if share:
@@ -246,8 +246,7 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
                 # mixes texels or a highlight; the first steps run untied, the materials are re-estimated from
                 # the anchors' footprint fits, and the tie resumes to those
                 theta, finfo_free = footprint_steps(theta, FOOTPRINT_FREE_STEPS, 0.0)
-                target = material_targets(layout, torch.cat([layout.unpack(theta)[s_.name] for s_ in layout.specs],
-                                                             -1), *material_of)
+                target = material_targets(layout, layout.canonical(theta), *material_of)
                 theta, finfo = footprint_steps(theta, steps, anchor_weight, target)
                 finfo["joint_s"] += finfo_free["joint_s"]
                 finfo["joint_history"] = finfo_free["joint_history"] + finfo["joint_history"][1:]

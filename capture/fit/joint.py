@@ -296,9 +296,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     def scatter(g):                                 # per-sample [S, P] → [T, P]
         return S_t @ g
 
-    def canon_of(th):
-        prm = layout.unpack(th)
-        return torch.cat([prm[s.name] for s in layout.specs], -1)
+    canon_of = layout.canonical
 
     def cost_of(th):
         with torch.no_grad():

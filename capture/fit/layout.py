@@ -93,6 +93,11 @@ class Layout:
         so = zip(self.specs, self.offsets, strict=True)
         return {s.name: to_canonical(s, theta[..., o:o + s.channels]) for s, o in so}
 
+    def canonical(self, theta: Tensor) -> Tensor:
+        """θ ``[..., P]`` → the canonical parameters packed in the same columns ``[..., P]``."""
+        so = zip(self.specs, self.offsets, strict=True)
+        return torch.cat([to_canonical(s, theta[..., o:o + s.channels]) for s, o in so], -1)
+
     def pack(self, params: Mapping[str, Tensor]) -> Tensor:
         """Canonical parameters ``name → [..., C or 1]`` → θ ``[..., P]``."""
         parts = []

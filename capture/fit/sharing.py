@@ -448,7 +448,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     scols = [c for s in shared for c in layout.cols(s.name)]
     thr = torch.tensor([std_threshold(s) for s in shared for _ in range(s.channels)], dtype=ACC, device=dev)
     theta_in = theta
-    canon = torch.cat([layout.unpack(theta)[s.name] for s in layout.specs], -1)
+    canon = layout.canonical(theta)
     feats = canon[anchors][:, scols] / thr
     gen = torch.Generator().manual_seed(seed)
     centres = kmeans_pp(feats, candidates, gen) * thr                                  # canonical [K, Ps]
