@@ -100,12 +100,6 @@ def mixture(g: Angles, k_s: Tensor, shininess: Tensor, mix: Tensor) -> Tensor:
     return _masked(g, val)
 
 
-_VARIANTS = {
-    "phong": (modified_phong, "eq 1"),
-    "blinn-phong": (modified_blinn_phong, "eq 2"),
-}
-
-
 class _Nielsen(Model):
     variant = ""
 

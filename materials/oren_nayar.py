@@ -82,10 +82,6 @@ _check_angles = check_angles
 _t = as_param
 
 
-def _front(g: Angles) -> Tensor:
-    return g.front
-
-
 def _cosri(g: Angles) -> Tensor:
     """E·L − (N·E)(N·L) = sin θ_i sin θ_r cos(φ_r − φ_i) (Gotanda 2012 eq 18)."""
     return g.lv - g.nl * g.nv
