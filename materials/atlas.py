@@ -43,7 +43,8 @@ from .roughness import glossiness_to_roughness, roughness_to_shininess
 
 __all__ = [
     "AtlasError", "AtlasWarning", "Packing", "Rect", "TRANSFERS", "compose", "decode_schuler", "dilate",
-    "encode_schuler", "extract", "pack_rectangles", "rect_uv", "remap_uvs", "transfer_decode", "transfer_encode",
+    "encode_schuler", "extract", "pack_rectangles", "pull_push", "rect_uv", "remap_uvs", "transfer_decode",
+    "transfer_encode",
 ]
 
 #: Colour encodings of the atlas colour channels.
@@ -365,21 +366,39 @@ def _mask_hw1(mask: Tensor, shape: tuple[int, int]) -> Tensor:
     return m > 0
 
 
-def _push_pull(x: Tensor, valid: Tensor) -> Tensor:
-    """Fill invalid texels of ``x [1, C, H, W]`` from a mask-weighted pyramid (push-pull). ``valid [1, 1, H, W]``."""
-    h, w = x.shape[-2:]
-    if not valid.any():
-        return x
-    if valid.all() or (h == 1 and w == 1):
-        return x
-    wv = valid.to(x.dtype)
-    num = F.avg_pool2d(x * wv, 2, ceil_mode=True)
-    den = F.avg_pool2d(wv, 2, ceil_mode=True)
-    coarse_valid = den > 0
-    coarse = torch.where(coarse_valid, num / den.clamp_min(1e-30), torch.zeros_like(num))
-    coarse = _push_pull(coarse, coarse_valid)
-    up = F.interpolate(coarse, scale_factor=2, mode="nearest")[..., :h, :w]
-    return torch.where(valid, x, up)
+def pull_push(values: Tensor, known: Tensor) -> Tensor:
+    """Fill the unknown texels of a map ``[H, W, C]`` from its known ones (``known [H, W]`` bool) by pull-push.
+
+    Pull: sum the known texels and their count into a pyramid of half-resolution levels down to 1 × 1; push: from
+    coarse to fine, every texel whose block holds no known texel takes the value of its parent. Each unknown texel
+    thus gets the mean of the known texels in the smallest pyramid block around it that has any, weighted by how
+    many each block holds. Known texels are returned unchanged (their values only, so unknown texels may hold
+    anything, NaN included). Vectorised: one ``avg_pool2d`` and one ``interpolate`` per level, log2(max(H, W))
+    levels. With no known texel at all a copy of the map is returned.
+
+    The one fill of the project: :func:`dilate` (and so the atlas gutters) and the fit's unobserved texels.
+    """
+    if not isinstance(values, Tensor) or not isinstance(known, Tensor):
+        raise TypeError("pull_push: values and known must be torch.Tensors")
+    if values.dim() != 3 or tuple(known.shape) != tuple(values.shape[:2]):
+        raise AtlasError(f"pull_push: values must be [H, W, C] and known [H, W], got {tuple(values.shape)} and "
+                         f"{tuple(known.shape)}")
+    known = known.bool()
+    if not bool(known.any()):
+        return values.clone()
+    w = known.to(values.dtype)[None, None]
+    x = torch.where(known[..., None], values, torch.zeros((), dtype=values.dtype, device=values.device))
+    x = x.permute(2, 0, 1)[None]
+    pyramid = [(x, w)]
+    while pyramid[-1][0].shape[-2:] != (1, 1):
+        x, w = pyramid[-1]
+        pyramid.append((F.avg_pool2d(x, 2, ceil_mode=True) * 4, F.avg_pool2d(w, 2, ceil_mode=True) * 4))
+    # each level's means where it holds a known texel; the floor only keeps 0/0 out of the discarded branch
+    cur = pyramid[-1][0] / pyramid[-1][1].clamp_min(1e-12)
+    for x, w in reversed(pyramid[:-1]):
+        up = F.interpolate(cur, size=x.shape[-2:], mode="nearest")
+        cur = torch.where(w > 0, x / w.clamp_min(1e-12), up)
+    return torch.where(known[..., None], values, cur[0].permute(1, 2, 0))
 
 
 def _rings(x: Tensor, valid: Tensor, pixels: int) -> tuple[Tensor, Tensor]:
@@ -419,7 +438,7 @@ def dilate(map: Tensor, mask: Tensor, pixels: int | None = None) -> Tensor:
     valid = _mask_hw1(mask, tuple(map.shape[:2]))[None, None]
     x = map.permute(2, 0, 1)[None]
     if pixels is None:
-        return _push_pull(x, valid)[0].permute(1, 2, 0)
+        return pull_push(map, valid[0, 0])
     if not isinstance(pixels, int) or pixels < 0:
         raise AtlasError(f"pixels must be an integer ≥ 0 or None, got {pixels!r}")
     return _rings(x, valid, pixels)[0][0].permute(1, 2, 0)
@@ -462,7 +481,7 @@ def compose(
         x = F.pad(block.permute(2, 0, 1)[None], (g, g, g, g))
         pvalid = F.pad(valid[None, None].to(torch.uint8), (g, g, g, g)) > 0
         x, grown = _rings(x, pvalid, g)
-        filled = _push_pull(x, grown)[0].permute(1, 2, 0)
+        filled = pull_push(x[0].permute(1, 2, 0), grown[0, 0])
         y0, x0 = rect.y - g, rect.x - g
         y1, x1 = rect.y + rect.h + g, rect.x + rect.w + g
         sy0, sx0 = max(y0, 0), max(x0, 0)

@@ -16,14 +16,14 @@ import time
 from collections.abc import Mapping, Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
+from materials.atlas import pull_push  # the one pull-push fill; re-exported by capture.fit
 from materials.model import Model
 from materials.params import ParamSpec
 
 from ..observations import Observations
-from .layout import ACC, FitResult, Layout, SolverError
+from .layout import ACC, FitResult, Layout
 from .noise import NOISE, check_noise, irls_weights, moderated_misfit, noise_sigma, photo_noise_ratio
 from .operators import pixel_operator, sampling_operator
 from .texel import jacobian
@@ -48,41 +48,6 @@ def std_threshold(spec: ParamSpec, observable_std: float | Mapping[str, float] |
     if spec.name in table:
         return float(table[spec.name])
     return 0.02 * min(spec.high - spec.low, 1.0)
-
-
-def pull_push(values: Tensor, known: Tensor, levels: int | None = None) -> Tensor:
-    """Fill unknown texels of a map ``[H, W, C]`` from known ones (``known [H, W]`` bool) by pull-push.
-
-    Pull: average known texels into a pyramid of half-resolution levels (weighted by how many
-    known texels each covers); push: from coarse to fine, every unknown texel takes the upsampled
-    coarser value. Known texels are returned unchanged. Vectorised (avg_pool / interpolate per
-    level, log2(max(H, W)) levels). With no known texel at all the map is returned unchanged.
-    """
-    if values.dim() != 3 or known.shape != values.shape[:2]:
-        raise SolverError(f"pull_push: values must be [H, W, C] and known [H, W], got {tuple(values.shape)} and "
-                          f"{tuple(known.shape)}")
-    if not bool(known.any()):
-        return values.clone()
-    H, W, C = values.shape
-    w = known.to(values.dtype)[None, None]
-    x = (values * known[..., None]).permute(2, 0, 1)[None]
-    levels = levels or max(1, math.ceil(math.log2(max(H, W))))
-    pyr = [(x, w)]
-    for _ in range(levels):
-        x, w = pyr[-1]
-        if x.shape[-1] == 1 and x.shape[-2] == 1:
-            break
-        x2 = F.avg_pool2d(x, 2, ceil_mode=True) * 4
-        w2 = F.avg_pool2d(w, 2, ceil_mode=True) * 4
-        pyr.append((x2, w2))
-    # normalise each level to means where weight > 0
-    means = [(x / w.clamp_min(1e-12), (w > 0).to(x.dtype)) for x, w in pyr]
-    cur, cur_ok = means[-1]
-    for m, ok in reversed(means[:-1]):  # noqa: B007
-        up = F.interpolate(cur, size=m.shape[-2:], mode="nearest")
-        cur = torch.where(ok > 0, m, up)
-    out = cur[0].permute(1, 2, 0)
-    return torch.where(known[..., None], values, out)
 
 
 def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor, groups, *, loss: str = "l2",

@@ -224,6 +224,25 @@ def test_dilate_vectorised_large_and_float32(device):
     assert torch.equal(A.dilate(m, torch.zeros_like(cov)), m)
 
 
+def test_pull_push_weights_each_block_by_its_known_texels():
+    # 4 × 4: the top-left 2 × 2 block holds three known 0s, the top-right one known 1, the bottom half nothing
+    m = torch.full((4, 4, 2), float("nan"), dtype=torch.float64)  # unknown texels may hold anything
+    known = torch.zeros(4, 4, dtype=torch.bool)
+    known[0, 0] = known[0, 1] = known[1, 0] = known[0, 2] = True
+    m[0, 0] = m[0, 1] = m[1, 0] = 0.0
+    m[0, 2] = 1.0
+    out = A.pull_push(m, known)
+    assert torch.equal(out[known], m[known])
+    assert torch.equal(out[1, 1], torch.zeros(2, dtype=torch.float64))  # its own block's mean
+    assert torch.equal(out[1, 3], torch.ones(2, dtype=torch.float64))
+    # the bottom half takes the whole map's mean, each block weighted by its count: (3·0 + 1·1)/4, not (0 + 1)/2
+    assert torch.equal(out[2:], torch.full((2, 4, 2), 0.25, dtype=torch.float64))
+    assert torch.equal(A.dilate(m, known), out)  # the atlas gutters fill the same way
+    assert torch.equal(A.pull_push(m, torch.zeros_like(known)).isnan(), m.isnan())  # nothing known: a copy
+    with pytest.raises(A.AtlasError, match=r"\[H, W, C\]"):
+        A.pull_push(m[..., 0], known)
+
+
 def test_compose_no_bleed_between_materials():
     blocks = [torch.full((10, 7, 4), 0.25), torch.full((5, 9, 4), 0.75)]
     cov0 = torch.ones(10, 7, dtype=torch.bool)
