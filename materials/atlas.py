@@ -392,7 +392,9 @@ def pull_push(values: Tensor, known: Tensor) -> Tensor:
     pyramid = [(x, w)]
     while pyramid[-1][0].shape[-2:] != (1, 1):
         x, w = pyramid[-1]
-        pyramid.append((F.avg_pool2d(x, 2, ceil_mode=True) * 4, F.avg_pool2d(w, 2, ceil_mode=True) * 4))
+        # sums, not 4 × means: a ceil_mode edge block of an odd size averages fewer texels
+        pyramid.append((F.avg_pool2d(x, 2, ceil_mode=True, divisor_override=1),
+                        F.avg_pool2d(w, 2, ceil_mode=True, divisor_override=1)))
     # each level's means where it holds a known texel; the floor only keeps 0/0 out of the discarded branch
     cur = pyramid[-1][0] / pyramid[-1][1].clamp_min(1e-12)
     for x, w in reversed(pyramid[:-1]):

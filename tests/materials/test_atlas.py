@@ -238,6 +238,10 @@ def test_pull_push_weights_each_block_by_its_known_texels():
     # the bottom half takes the whole map's mean, each block weighted by its count: (3·0 + 1·1)/4, not (0 + 1)/2
     assert torch.equal(out[2:], torch.full((2, 4, 2), 0.25, dtype=torch.float64))
     assert torch.equal(A.dilate(m, known), out)  # the atlas gutters fill the same way
+    # odd sizes: the 1 × 1 corner block of a 3 × 3 map counts its one texel, not four
+    m3, k3 = torch.zeros(3, 3, 1, dtype=torch.float64), torch.zeros(3, 3, dtype=torch.bool)
+    m3[2, 2], k3[0, 0], k3[2, 2] = 1.0, True, True
+    assert A.pull_push(m3, k3)[0, 2, 0] == 0.5 and A.pull_push(m3, k3)[2, 0, 0] == 0.5
     assert torch.equal(A.pull_push(m, torch.zeros_like(known)).isnan(), m.isnan())  # nothing known: a copy
     with pytest.raises(A.AtlasError, match=r"\[H, W, C\]"):
         A.pull_push(m[..., 0], known)
