@@ -62,11 +62,7 @@ def plot_lobes(out_png: str | Path, names: list[str] | None = None, views=(0.0, 
                  fontsize=10)
     fig.tight_layout()
     out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_png.with_name(f".{out_png.stem}.tmp.png")
-    fig.savefig(tmp, dpi=70)
-    plt.close(fig)
-    tmp.replace(out_png)
+    save_figure(fig, out_png, dpi=70)
     return out_png
 
 
@@ -139,19 +135,28 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: Path) -> tuple[int, int]:
-    """Draw ``fig`` and write its pixels as an RGB PNG, atomically; returns ``(height, width)``."""
+def save_figure(fig, path, dpi: float | None = None) -> tuple[int, int]:
+    """Draw ``fig`` (at ``dpi`` when given) and write its pixels as an RGB PNG, closing the figure; returns
+    ``(height, width)``.
+
+    The one way a figure reaches a file: through :func:`renderer.imageio.write_png`, so atomically (a reader never
+    sees half a PNG, an interrupt leaves nothing behind) and with the umask's permissions. The folder is created.
+    """
     import numpy as np
 
     from renderer.imageio import write_png
 
     plt = _pyplot()
+    path = Path(path)
     try:
+        if dpi is not None:
+            fig.set_dpi(dpi)
         fig.canvas.draw()
         rgba = np.asarray(fig.canvas.buffer_rgba())
         rgb = torch.from_numpy(rgba[..., :3].astype("float32") / 255.0)
     finally:
         plt.close(fig)
+    path.parent.mkdir(parents=True, exist_ok=True)
     write_png(path, rgb, transfer="linear")
     return int(rgb.shape[0]), int(rgb.shape[1])
 
@@ -383,7 +388,7 @@ def plot_views(out_dir, rows, per_page: int = VIEWS_PER_PAGE, name: str = "views
         fig.text(cb_rect[0] + 0.16 / fw, cb_rect[1] - 0.12 / fh, "no prediction\n(background,\ndropped pixel)",
                  fontsize=6, va="top")
         path = out_dir / (f"{name}.png" if p == 0 else f"{name}-{p + 1}.png")
-        info.sizes.append(_save(fig, path))
+        info.sizes.append(save_figure(fig, path))
         info.paths.append(path)
         info.colorbar.append(_box(fw, fh, cb_rect))
     return info
@@ -474,5 +479,5 @@ def plot_confidence(path, std: Tensor, unobservable: Tensor, name: str, units: s
                         Patch(facecolor=NO_SAMPLE_RGB, edgecolor="k", label="black: no sample (texel not seen, or "
                               "outside the UV charts)")],
                loc="lower left", bbox_to_anchor=(0.2 / fw, 0.05 / fh), fontsize=7, frameon=False)
-    size = _save(fig, path)
+    size = save_figure(fig, path)
     return FigureInfo(paths=[path], sizes=[size], colorbar=[_box(fw, fh, cb_rect)], value_range=(lo, hi))

@@ -12,6 +12,7 @@ import materials
 from materials.validation import SampledReport, check_stability, sampled_stability
 
 from .benchmark import machine_description
+from .plots import save_figure
 from .report import replace_section
 
 
@@ -272,8 +273,7 @@ def plot_reconstruction_stress(rows: list[dict], out_png) -> None:
     axes[0][0].set_ylabel("RMSE on observed texels")
     axes[0][0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out_png, dpi=70)
-    plt.close(fig)
+    save_figure(fig, out_png, dpi=70)
 
 
 def run_reconstruction_stress(workdir, out: str | None = None, figure: str | None = None) -> str:

@@ -25,6 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import materials  # noqa: E402
 import materials.measured as measured  # noqa: E402
 from capture import brdf_fit  # noqa: E402
+from capture.plots import save_figure  # noqa: E402
+from capture.report import atomic_write_text  # noqa: E402
 
 #: Everything from this line on in an existing measured-fits.md is hand-written and kept when the file is re-generated.
 KEEP_MARKER = "<!-- hand-written below: kept by scripts/fit_measured.py -->"
@@ -73,9 +75,7 @@ def render_figure(material, fits, path: Path, size: int) -> None:
     fig.suptitle(f"{material}: measured (NBRDF fit of MERL) vs fitted models; glancing NE + grazing SW light",
                  fontsize=7)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def _fmt(x: float) -> str:
@@ -218,15 +218,12 @@ def write_markdown(path: Path, results, models, settings, figures, seconds, unif
                 cells.append(f"{_fmt(r.errors.rel_l1)} ({_fmt(r.errors.rel_l1_no_grazing)})" if r else "—")
             lines.append(f"| {mat} | " + " | ".join(cells) + " |")
         lines.append("")
-    path.parent.mkdir(parents=True, exist_ok=True)
     text = "\n".join(lines) + "\n"
     if path.is_file():  # keep the hand-written sections below the marker (e.g. the capture benchmark)
         old = path.read_text()
         if KEEP_MARKER in old:
             text += "\n" + old[old.index(KEEP_MARKER):]
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    atomic_write_text(path, text)
 
 
 def main(argv=None) -> int:

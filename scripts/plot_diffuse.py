@@ -17,6 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
+from capture.plots import save_figure  # noqa: E402
 from materials import Angles  # noqa: E402
 from materials import microfacet_diffuse as md  # noqa: E402
 from materials import oren_nayar as on  # noqa: E402
@@ -57,8 +58,7 @@ def plot_oren_nayar(out: Path) -> None:
         ax.set_ylabel("π f_r cos θ_l")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "oren_nayar_in_plane.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "oren_nayar_in_plane.png", dpi=110)
 
 
 def plot_microfacet(out: Path) -> None:
@@ -77,8 +77,7 @@ def plot_microfacet(out: Path) -> None:
             ax.set_ylim(-0.2, 1.3)
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "microfacet_diffuse_fit.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "microfacet_diffuse_fit.png", dpi=110)
 
 
 def plot_sh(out: Path) -> None:
@@ -101,8 +100,7 @@ def plot_sh(out: Path) -> None:
     axes[0].legend(fontsize=7)
     axes[1].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "sh_scales.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "sh_scales.png", dpi=110)
 
 
 def main(argv=None) -> int:

@@ -17,8 +17,10 @@ from capture.plots import (
     ViewRow,
     error_colours,
     plot_confidence,
+    plot_lobes,
     plot_views,
     relative_error,
+    save_figure,
     tone_map,
     views_page_size,
 )
@@ -154,3 +156,16 @@ def test_bad_colour_scales_and_sizes_are_named():
         views_page_size(0, (48, 64))
     with pytest.raises(PlotError, match="image_size"):
         views_page_size(2, (48,))
+
+
+def test_save_figure_writes_the_drawn_pixels_atomically_into_a_new_folder(tmp_path):
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(2.0, 1.0), facecolor=(1.0, 0.0, 0.0))
+    out = tmp_path / "new" / "red.png"
+    assert save_figure(fig, out, dpi=50) == (50, 100)  # 1 × 2 inches at 50 dpi
+    assert not plt.fignum_exists(fig.number)  # closed
+    assert sorted(p.name for p in out.parent.iterdir()) == ["red.png"]  # no temporary file left
+    assert torch.equal(_rgb(out), torch.tensor([1.0, 0.0, 0.0]).expand(50, 100, 3))
+    lobes = plot_lobes(tmp_path / "lobes" / "lobes.png", names=["lambert"])
+    assert [p.name for p in lobes.parent.iterdir()] == ["lobes.png"] and _rgb(lobes).shape == (210, 1050, 3)
