@@ -93,8 +93,8 @@ def observability_errors(maps: Mapping[str, Tensor], gt: Mapping[str, Tensor], o
 
     ``flagged_share`` says whether the tool knew where it was wrong: near 1, the error is where the report
     warned that the photos cannot tell; well below 1, texels called determined are wrong (e.g. a second basin
-    judged at the estimate). Default scene (docs/reconstruction.md, session 9): 0.998 / 1.000 / 1.000 for
-    albedo / f0 / roughness.
+    judged at the estimate). Default scene (pixel-centre fit, docs/log.md "where the rest of the error is"):
+    0.998 / 1.000 / 1.000 for albedo / f0 / roughness.
 
     Args:
         maps: fitted maps name → ``[H, W, C]`` (the solver's raw values, not the filled ones);

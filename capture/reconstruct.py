@@ -68,8 +68,8 @@ AUTO_CANDIDATES = ("lambert", "ggx-lambert", "gotanda2012-layered")
 #: noise-free Lambert (nearest), 0.62 noise-free GGX + Lambert (bilinear, 128 px, 64² maps), 2.9 with shot noise of a
 #: 3 000 e⁻ full well, 1.9 at 1 000 e⁻ with 8-bit sRGB; for a model poorer than the photos' 280 – 83 000 (Lambert on
 #: specular scenes, GGX + Lambert on a coated one 16 700). On the default scene (256² maps judged on a 128² copy) the
-#: copy itself misfits: GGX + Lambert reads 318 there and the layered trial still runs (docs/reconstruction.md,
-#: "Session 15").
+#: copy itself misfits: GGX + Lambert reads 318 there and the layered trial still runs (docs/log.md, "auto stops at
+#: the model that explains its photos").
 AUTO_EXPLAINED_CHI2 = 4.0
 #: ``model="auto"`` takes a richer candidate whose held-out error did not drop when its training χ² per residual is
 #: at least this factor below the simpler one's and the simpler one does not explain its photos (χ² above
@@ -128,7 +128,7 @@ def _model(name, known: Mapping[str, object] | None = None):
 #: Tile size of the pooled material proposals that :func:`reconstruct` uses when the lights stay fixed relative to
 #: the object (:func:`static_lights`). Measured on the default scene (256², 16 views) under five static rigs —
 #: all-texel roughness 0.108–0.131 → 0.042–0.061 — and on two flash rigs, where they cost f0 (0.013 → 0.029 with
-#: the lights 20° off the camera, 0.011 → 0.032 at 45°): docs/reconstruction.md, "Session 11".
+#: the lights 20° off the camera, 0.011 → 0.032 at 45°): docs/log.md, "pooled proposals under static lights".
 POOLED_STATIC = 4
 
 
@@ -208,8 +208,8 @@ def _trial_observations(observe, obs: Observations, texture_size: int, fit_views
     :data:`AUTO_TRIAL_TEXTURE`² texels when the maps are larger, with the samples thinned by the same area ratio
     (a fixed-seed draw) so a texel keeps as many samples as at full size. The question a trial answers — which
     reflectance model explains the photos — does not need the full resolution, and a trial's cost grows with the
-    samples and texels (default scene, 256² maps: the three trial fits 44 s → 16 s, same choice; docs/
-    reconstruction.md, "Session 13"). Otherwise — maps of at most that size (on a 64² layered scene halving them
+    samples and texels (default scene, 256² maps: the three trial fits 44 s → 16 s, same choice; docs/log.md,
+    "auto's trials as the final fit"). Otherwise — maps of at most that size (on a 64² layered scene halving them
     made ggx-lambert gain < 5 % over lambert, and auto stopped before the layered model), or a copy with fewer than
     :data:`AUTO_TRIAL_MIN_SAMPLES` samples (small photos of large maps) — the full observations ``obs`` (of the
     fitted views)."""
@@ -238,7 +238,7 @@ def _highlight_observations(obs: Observations) -> Observations:
     So the per-texel fit whose only product is their median over the texels that determine them needs only the
     :data:`SCALAR_TEXEL_FRACTION` (at least :data:`SCALAR_MIN_TEXELS`) of the observed texels with the largest
     n·h. Measured on the default-size layered scene (256² maps, 51 870 observed texels, 4 096 kept;
-    docs/reconstruction.md, "Session 14"): first fit 20.7 → 6.1 s on 24 360 of its 204 000 samples, coat η
+    docs/log.md, "the layered fit 58 → 42 s"): first fit 20.7 → 6.1 s on 24 360 of its 204 000 samples, coat η
     1.49991 from 22 texels instead of 29 and roughness 0.10000 from 79 instead of 86, the same to 5 digits; with
     3 000 e⁻ shot noise η / roughness 1.49990 / 0.09998 from 11 / 43 texels (1.49988 / 0.09998 from 13 / 48 with
     all). Samples lit by environment lights only have no n·h and are left out; without any (sample, light) pair
@@ -296,10 +296,10 @@ def _heldout_error(model, fit: FitResult, obs: Observations, sampling: str = "ne
     gets: where the training views left a parameter unobservable the raw per-texel value is arbitrary, and
     judging a model by it penalised exactly the models with more (hence more often unobservable) parameters.
 
-    Mean absolute, not RMSE (session 4): held-out squared errors are dominated by the few highlight pixels
+    Mean absolute, not RMSE: held-out squared errors are dominated by the few highlight pixels
     no model predicts from other views — on the measured-material scene 1 % of the pixels held 91 % of the
     squared error, so the RMSE moved by 2 % between models whose held-out PSNR on the benchmark's own views
-    differs by 11 dB (docs/reconstruction.md)."""
+    differs by 11 dB (docs/reconstruction.md, "Model selection")."""
     return float((_render(model, fit.maps, obs, sampling) - obs.radiance).abs().mean())
 
 
@@ -460,8 +460,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             a material's), then each one's median over the texels where it is observable (``fit.scalars`` in the
             report, with a warning where it is observable nowhere), held fixed in a second fit of the
             rest. Known values take precedence. ``()`` = everything per texel. ``model="auto"``'s trial fits
-            fit them the same way (until session 13 they fitted a coat per texel, and auto never chose the layered
-            model on a layered scene).
+            fit them the same way (fitted with a coat per texel, the layered trial lost even on layered scenes).
         holdout: view indices kept out of the fit and used only to validate it: each is re-rendered with the
             recovered (filled) maps — what a user gets — and compared with its photo (PSNR / SSIM in
             ``report.views``, flagged ``heldout``, and the summary). The only check of the maps on real photos,

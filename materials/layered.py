@@ -305,8 +305,8 @@ class GotandaLayered(Model):
         object and held known (:class:`materials.KnownParams`, as ``capture.reconstruct`` fits it) — a solver
         evaluates the model hundreds of times on the same angles with the same coat, so the last result is kept
         and reused for the same :class:`Angles` object (unchanged in place), coat values and batch shape.
-        Measured on the default-size layered scene's second fit (256² maps, 204 000 samples, 2 threads):
-        docs/reconstruction.md, "Session 14".
+        Measured on the default-size layered scene's second fit (256² maps, 204 000 samples, 2 threads): 33.5–34.7 s
+        with the reuse, 38.5–42.4 s without, the same maps.
         """
         n1, r = p["coat_ior"], p["coat_roughness"]
         key = None

@@ -128,10 +128,11 @@ def test_capture_of_the_default_measured_scene_regression(tmp_path):
 
 @pytest.mark.slow
 def test_auto_picks_the_specular_model_on_the_measured_scene(tmp_path):
-    """auto judges by the held-out mean absolute error (session 4): on its own split of the 9 training views
-    measured lambert 0.0423, ggx-lambert 0.0398 (−6 %), gotanda2012-layered 0.0439 → ggx-lambert, 28.8 dB on
-    the benchmark's held-out views. With the RMSE (highlight pixels dominate) it kept lambert (17.8 dB). The
-    6 % gain is near the 5 % threshold: a failure here means the selection changed, to be looked at."""
+    """auto judges by the held-out mean absolute error (docs/reconstruction.md, "Model selection"): on its own
+    split of the 9 training views measured lambert 0.0423, ggx-lambert 0.0398 (−6 %), gotanda2012-layered 0.0439 →
+    ggx-lambert, 28.8 dB on the benchmark's held-out views. With the RMSE (highlight pixels dominate) it kept
+    lambert (17.8 dB). The 6 % gain is near the 5 % threshold: a failure here means the selection changed, to be
+    looked at."""
     (row,) = M.capture_benchmark(M.measured_scene(), models=("auto",), work_dir=tmp_path, fit_reference=False)
     assert row["error"] is None
     assert row["chosen"] == "ggx-lambert", row["chosen"]

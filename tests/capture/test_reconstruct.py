@@ -170,9 +170,9 @@ def test_auto_stops_once_a_model_explains_its_photos_within_their_noise(tmp_path
 def test_auto_chooses_the_layered_model_for_a_coated_scene(tmp_path):
     # A bilinear layered scene (64 px, 32² maps, 8 views, one coat: η 1.5, roughness 0.1). auto's trial fits fit each
     # candidate as the final fit does, the coat as two scalars for the object. Measured held-out MAE: lambert 0.061,
-    # ggx-lambert 0.032, layered 0.023 (coat 1.5 / 0.1); until session 13 the trials fitted a coat per texel, the
-    # layered trial read 0.089 and auto chose ggx-lambert — as it did on the same scene at 256² (re-renders 37.1–63.0
-    # dB against 57.9–77.7 with the layered model).
+    # ggx-lambert 0.032, layered 0.023 (coat 1.5 / 0.1). Trials that fit a coat per texel read 0.089 for the layered
+    # model and chose ggx-lambert — as on the same scene at 256² (re-renders 37.1–63.0 dB against 57.9–77.7 with the
+    # layered model).
     make_synthetic(small_scene("gotanda2012-layered", uniform={"coat_roughness": 0.1}, image_size=64, texture_size=32,
                                n_views=8), tmp_path / "ds")
     rep = reconstruct(tmp_path / "ds", model="auto", out_dir=tmp_path / "o", progress=False)
@@ -284,8 +284,8 @@ def test_model_family_regression(name, tmp_path):
     for k, frac in FAMILIES[name].items():
         assert rep.coverage["observable_fraction"][k] >= 0.5 * frac, (k, rep.coverage["observable_fraction"])
         assert rep.errors["maps_observable"][k]["rmse"] < 1e-3, (k, rep.errors["maps_observable"][k])
-    # every fit explains its photos (worst view measured: gotanda2012 86.2 dB — 21.6 dB before session 4's
-    # per-component trust region and f0 starts —, ggx-lambert 118, schuler 133, nielsen-mixture 147)
+    # every fit explains its photos (worst view measured: gotanda2012 86.2 dB — 21.6 dB without the per-component
+    # trust region and the f0 starts of the closed form —, ggx-lambert 118, schuler 133, nielsen-mixture 147)
     assert min(v["psnr"] for v in rep.views) > 60
 
 
@@ -295,7 +295,7 @@ def test_layered_family_with_coat_scalars(tmp_path):
     # η 1.5 everywhere in the synthetic maps). Measured: the coat scalars fitted to 1.4999996 / 0.10000002
     # (median over the 19 / 5 texels where they are observable), re-renders ≥ 83.7 dB, observable
     # fractions albedo 28 %, f0 3 %, roughness 22 %, absorption 48 %, observable-texel RMSE ≤ 4.1e-4
-    # outside the coated region (before session 4 the fit did not converge: 22-25 dB re-renders).
+    # outside the coated region (with a coat per texel and a whole-step trust region it did not converge: 22-25 dB).
     # The coated region is left out of the error check on purpose: its truth absorbs G and B fully
     # (α' 0.8 and 2.0 clip the linear absorption to 0) and its bottom f0 0.04 is index-matched to the
     # coat (relative f0 = 0: no bottom lobe), so other parameter sets render the same photos there and
@@ -536,12 +536,12 @@ def test_fully_rough_scene_without_anchors_falls_back_and_warns_and_loosened_anc
 
 def test_proposal_prior_keeps_more_joint_steps_from_drifting(tmp_path):
     # three materials, bilinear photos: with the sharing's proposal tying f0 / roughness (anchor_weight, default
-    # 0.03) 6 joint steps beat the 3 of session 6; without the tie the same 6 steps let regions drift along the
+    # 0.03) 6 joint steps beat 3 untied ones; without the tie the same 6 steps let regions drift along the
     # directions the photos leave flat. Measured all-texel f0 / roughness RMSE: 0.0143 / 0.0175 (default),
-    # 0.0189 / 0.0265 (anchor_weight=0), 0.0165 / 0.0219 (session 6: 3 × 25 steps, no tie)
+    # 0.0189 / 0.0265 (anchor_weight=0), 0.0165 / 0.0219 (3 × 25 steps, no tie)
     make_synthetic(small_scene("ggx-lambert", image_size=128, texture_size=64, n_views=8, materials=3), tmp_path / "ds")
     runs = {"default": {}, "free": {"anchor_weight": 0.0},
-            "session 6": {"anchor_weight": 0.0, "joint_iterations": 3, "cg_iterations": 25}}
+            "short free": {"anchor_weight": 0.0, "joint_iterations": 3, "cg_iterations": 25}}
     err = {}
     for name, opts in runs.items():
         rep = reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / name.replace(" ", "_"),
@@ -549,8 +549,8 @@ def test_proposal_prior_keeps_more_joint_steps_from_drifting(tmp_path):
         err[name] = {k: rep.errors["maps"][k]["rmse"] for k in ("f0", "roughness")}
     assert err["default"]["f0"] < 0.85 * err["free"]["f0"]
     assert err["default"]["roughness"] < 0.8 * err["free"]["roughness"]
-    assert err["default"]["f0"] < 0.95 * err["session 6"]["f0"]
-    assert err["default"]["roughness"] < 0.9 * err["session 6"]["roughness"]
+    assert err["default"]["f0"] < 0.95 * err["short free"]["f0"]
+    assert err["default"]["roughness"] < 0.9 * err["short free"]["roughness"]
 
 
 def test_joint_refinement_raises_its_damping_until_a_step_is_accepted(tmp_path):
@@ -572,13 +572,13 @@ def test_joint_refinement_raises_its_damping_until_a_step_is_accepted(tmp_path):
 
 
 def test_albedo_prior_fills_texels_seen_only_through_their_neighbours(tmp_path):
-    # The joint refinement's edge-preserving prior on the albedo (default since session 5, in units of 0.3 that
-    # shrink with the photos' noise). 64 px photos of 64² maps: many texels are read only through a neighbour's
+    # The joint refinement's edge-preserving prior on the albedo (default, in units of 0.3 that shrink with the
+    # photos' noise). 64 px photos of 64² maps: many texels are read only through a neighbour's
     # bilinear footprint; they follow their neighbours instead of a same-material fill: measured all-texel
     # albedo RMSE 0.0516 against 0.0628 without the albedo prior (sharing_albedo=False). 96 px photos of 32²
     # maps, checker squares of 1.3 texels: a texture finer than the texels must not be smoothed away: 0.0122
-    # against 0.0110 (session 5, before unneeded materials were dropped: 0.0201 against 0.0191, and the bound
-    # was 1.1×; in units of 0.01 the prior made it 0.0288). The same with shot noise (full well 3 000 e⁻):
+    # against 0.0110 (with the unneeded candidate materials kept: 0.0201 against 0.0191; in units of 0.01 the prior
+    # made it 0.0288). The same with shot noise (full well 3 000 e⁻):
     # the residuals say the photos are ~40× noisier than the noise model, the unit drops to 0.0075 and the
     # albedo comes back at 0.0378 (0.0438 with the unit kept at 0.3, 0.0596 without the albedo prior)
     from capture.photo import PhotoModel
@@ -606,11 +606,11 @@ def test_sharing_that_misses_a_material_falls_back_to_the_texels_own_fits(tmp_pa
     # texels to make an anchor, so no metal material exists and the sharing gave every metal texel a dielectric:
     # data cost after the joint refinement 0.0368 against 0.0028 for the per-texel fit it started from. The solver
     # notices, lets the texels whose own samples reject their material keep their own fit and refines again
-    # (data cost 0.0028). Measured worst / mean view PSNR: 21.5 / 30.7 dB (20.3 / 28.3 with session 6's joint steps);
+    # (data cost 0.0028). Measured worst / mean view PSNR: 21.5 / 30.7 dB (20.3 / 28.3 with 3 untied joint steps);
     # 18.3 / 23.8 without the fallback, and
     # 0.6 / 15.4 before the scalars came from the per-texel fit too — under the sharing the coat took the
     # materials' values, reported as *measured* coat roughness 0.227 (truth 0.1) and coat η 1.365 (truth 1.5).
-    # Since session 12 the anchors loosen when fewer than 1 % of the texels qualify (2 here; × 10 gives 9, among them
+    # The anchors loosen when fewer than 1 % of the texels qualify (2 here; × 10 gives 9, among them
     # metal texels), and then the sharing no longer misses the metals (checked at the end); the fallback is tested
     # with the anchors held at the thresholds.
     import capture.fit.fast
@@ -722,9 +722,9 @@ def test_the_error_is_where_the_report_says_the_photos_cannot_tell(tmp_path):
     # texels the report flags unobservable, not among those it calls determined. Six materials, 128 px photos of 64²
     # maps, 8 views — measured share of the all-texel squared error in flagged texels albedo / f0 / roughness 0.999 /
     # 1.000 / 0.997 with observable fractions 0.47 / 0.09 / 0.22 and observable-texel RMSE 0.0010 / 0.0010 / 0.0082
-    # (all-texel 0.0192 / 0.0493 / 0.0679). Before k-means restarts (session 11) 0.0028 / 0.0078 / 0.0038 observable,
-    # and the roughness cap was 0.008: the restarts' clustering finds the rough dielectric (all-texel roughness
-    # 0.123 → 0.068) and puts 79 observable smooth-dielectric texels 0.024 off (max 0.068), so the cap is now 0.010.
+    # (all-texel 0.0192 / 0.0493 / 0.0679). The k-means restarts' clustering finds the rough dielectric (one draw:
+    # all-texel roughness 0.123, observable 0.0028 / 0.0078 / 0.0038) and puts 79 observable smooth-dielectric texels
+    # 0.024 off (max 0.068), hence the roughness cap of 0.010.
     # The default scene (256² maps, 16 views): 0.998 / 1.000 / 1.000.
     # Flagging nothing fails the share, flagging everything fails the fraction floor. Known exception, not tested
     # here: second basins judged at the estimate (fixed-light rig, roughness 0.893; docs/reconstruction.md).
@@ -778,7 +778,7 @@ def test_per_texel_lm_stops_early_once_its_cost_settles(tmp_path):
     # With bilinear sampling the per-texel LM only starts the joint refinement: it stops after BILINEAR_LM_MIN
     # iterations once the cost drops by < BILINEAR_LM_TOL twice in a row (GGX + Lambert from its closed-form grid:
     # drops of ~1e-4 per iteration), and runs its 10 while the cost still falls fast (the layered model, whose
-    # per-texel fit the fallback to the texels' own fits measures against; a fixed 5 broke that, session 11).
+    # per-texel fit the fallback to the texels' own fits measures against; a fixed 5 leaves it unconverged).
     from capture.fit.texel import BILINEAR_LM_MIN
 
     make_synthetic(small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6), tmp_path / "ggx")
