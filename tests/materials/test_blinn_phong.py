@@ -147,17 +147,6 @@ def test_zero_below_horizon_and_cosine_form():
     assert (gotanda_blinn_phong(gb, f0, s) == 0).all() and (gotanda_blinn_phong_cosine(gb, f0, s) == 0).all()
 
 
-@pytest.mark.parametrize("name", ["gotanda2010", "gotanda2010-specular"])
-def test_reciprocity(name):
-    nl, nv, lv = _random_front(200, seed=1)
-    m = materials.get(name)
-    p = {k: v.to(D64) for k, v in m.defaults((200,)).items()}
-    p["roughness"] = torch.rand(200, 1, dtype=D64, generator=torch.Generator().manual_seed(2))
-    a = m.brdf(Angles.from_cosines(nl, nv, lv), p)
-    b = m.brdf(Angles.from_cosines(nv, nl, lv), p)
-    assert torch.allclose(a, b, rtol=1e-12, atol=0)
-
-
 # -- energy ----------------------------------------------------------------------------------------
 @pytest.mark.parametrize("normalization", ["fit", "exact"])
 @pytest.mark.parametrize("s", [1.0, 10.0, 100.0, 1000.0])

@@ -123,17 +123,6 @@ def test_negative_base_is_clamped_with_finite_gradient():
     assert mixture_base(g, mix).item() == pytest.approx(-0.5)
 
 
-@pytest.mark.parametrize("name", ["nielsen-phong", "nielsen-blinn-phong", "nielsen-mixture"])
-def test_reciprocity(name):
-    nl, nv, lv = _random(200, 9)
-    m = materials.get(name)
-    p = {k: x.to(D64) for k, x in m.defaults((200,)).items()}
-    p["roughness"] = torch.rand(200, 1, dtype=D64, generator=torch.Generator().manual_seed(3))
-    a = m.brdf(Angles.from_cosines(nl, nv, lv), p)
-    b = m.brdf(Angles.from_cosines(nv, nl, lv), p)
-    assert torch.allclose(a, b, rtol=1e-12, atol=0)
-
-
 def _albedo_phong_like(lobe, nv, nth=800, nphi=256):
     """∫ lobe(g) n·l dω_l over the light hemisphere (midpoint in μ = n·l, φ), float64."""
     mu = (torch.arange(nth, dtype=D64) + 0.5) / nth

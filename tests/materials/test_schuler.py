@@ -131,21 +131,6 @@ def test_optimized_vs_dfg_forms_directional_albedo():
     assert max(a[1.0, v, th] for v in ("kelemen-szirmay-kalos", "cook-torrance-simplified") for th in (0, 45, 75)) < 1
 
 
-@pytest.mark.parametrize("variant", sc.VARIANTS)
-def test_reciprocity_and_front_facing(variant):
-    gen = torch.Generator().manual_seed(7)
-    n = t64(0.0, 0.0, 1.0)
-    l = torch.nn.functional.normalize(torch.randn(50, 3, generator=gen, dtype=D64) + 1.2 * n, dim=-1)
-    v = torch.nn.functional.normalize(torch.randn(50, 3, generator=gen, dtype=D64) + 1.2 * n, dim=-1)
-    f0, r = t64(0.04, 0.5, 1.0), t64(0.35)
-    a = sc.schuler_specular(Angles.from_vectors(n, l, v), f0, r, variant)
-    b = sc.schuler_specular(Angles.from_vectors(n, v, l), f0, r, variant)
-    torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
-    g = Angles.from_vectors(n, l, v)
-    assert (a[~g.front.squeeze(-1)] == 0).all() and (a >= 0).all()
-    assert (sc.schuler_specular(Angles.from_vectors(n, l[:1], -l[:1]), f0, r, variant) == 0).all()
-
-
 def test_model_and_errors():
     m = materials.get("schuler")
     assert m.param_names == ("albedo", "f0", "roughness") and m.spec("f0").linear
