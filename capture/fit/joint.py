@@ -348,7 +348,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             canon = canon_of(theta)
             dp = layout.dcanonical(theta)
             if pix is not None:
-                pred, J = pix.linearise(model, layout, canon, groups)       # J: the entries' blocks C [E, 3, P]
+                pred, J = pix.linearise(model, layout, canon, groups)       # J: a PixelJacobian
             else:
                 pred, J = jacobian(model, layout, obs, gather(canon), groups, canonical=True)
             r = y - pred

@@ -86,11 +86,11 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
     with torch.no_grad():
         if footprints is not None:
             op = pixel_operator(footprints, T)
-            pred, C = op.linearise(model, layout, canon, groups)
+            pred, J = op.linearise(model, layout, canon, groups)
             y = op.y
             r = y - pred
             w = irls_weights(r, loss, delta) / noise_sigma(y, noise).square()
-            _, A = op.normal(C, w, w * r)
+            _, A = op.normal(J, w, w * r)
             chi_e = (w * r * r).sum(-1)[op.e_pix] * op.e_share
             chi = op.tex_op @ chi_e
             nres = op.tex_op @ (3.0 * op.e_share)

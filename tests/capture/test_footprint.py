@@ -101,6 +101,34 @@ def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx):
         assert torch.allclose(op.apply_t(C, op.apply(C, e))[t], B[t, :, p], rtol=1e-10, atol=1e-14)
 
 
+def test_an_affine_model_is_linearised_once():
+    """Lambert is affine in its albedo: the first linearisation finds it, and later predictions from the stored
+    Jacobian equal the model evaluated at other maps (float64, to 1e-12); GGX + Lambert is not taken for affine."""
+    sc, fp, _, T = _scene("lambert")
+    model, layout = sc.model, Layout.of(sc.model)
+    sel = fp.select(torch.arange(fp.n_pixels) % 5 == 0)
+    sel.samples = sel.samples.to(dtype=torch.float64)
+    op = PixelOperator(sel, T * T)
+    gen = torch.Generator().manual_seed(1)
+    canon = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64)
+    assert not op.affine
+    op.linearise(model, layout, canon, param_groups(layout))
+    assert op.affine
+    other = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64)
+    so = sel.samples
+    direct = op.group_op @ so.predict(model, layout.split(op.gather_op @ other))
+    via = op.predict(model, layout, other)
+    assert float((via - direct).abs().max()) < 1e-12 * float(direct.abs().max())
+    pred, _ = op.linearise(model, layout, other, param_groups(layout))
+    assert torch.allclose(pred, direct, rtol=1e-12, atol=1e-15)
+    sc2, fp2, _, _ = _scene("ggx-lambert", n_views=1)
+    layout2 = Layout.of(sc2.model)
+    op2 = PixelOperator(fp2, T * T)
+    op2.linearise(sc2.model, layout2, torch.full((T * T, layout2.P), 0.3, dtype=torch.float64),
+                  param_groups(layout2))
+    assert not op2.affine
+
+
 def test_footprint_fit_recovers_a_texture_finer_than_its_pixels():
     """Lambert torus, albedo texture with texels about as large as pixels, photos of 64 jittered rays per pixel:
     the footprint solve recovers the albedo of the well-lit texels the photos resolve far better than treating
