@@ -322,16 +322,8 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         facing = (g.normal * g.view).sum(-1) > 0
         lit = torch.zeros(len(g), dtype=torch.bool, device=finite.device)
         lit[prep.sample] = True
-        # samples a light faces geometrically (for shadowed vs unlit); cheap vector ops, no rays
-        could = torch.zeros_like(lit)
-        for t in prep.lights:
-            could[t.index] = True
-        for light in lights:
-            try:
-                ldir, _, _ = light.incident(g.position)
-            except Exception:  # environment lights have no direction
-                continue
-            could |= ((g.normal * ldir).sum(-1) > 0) & ((g.geo_normal * ldir).sum(-1) > 0)
+        # samples one of the view's lights faces geometrically (for shadowed vs unlit), as prepare found them
+        could = prep.faced if prep.faced is not None else lit
         ok = finite & ~clipped_s & facing & lit
         drops["nonfinite"] += int((~finite).sum())
         drops["clipped"] += int(clipped_s.sum())

@@ -85,6 +85,8 @@ class Prepared:
         lights: per point/directional light that reaches anything, a :class:`LightTerm`.
         envs: per environment light, an :class:`EnvTerm`.
         gbuffer: the G-buffer it was prepared from.
+        faced: ``[N]`` bool, G-buffer samples that some point/directional light faces (front side of the shading
+            and geometric normals, before shadow rays): with ``sample``, tells shadowed from unlit samples.
     """
 
     n_samples: int
@@ -95,6 +97,7 @@ class Prepared:
     lights: list[LightTerm]
     envs: list[EnvTerm]
     gbuffer: GBuffer | None = None
+    faced: Tensor | None = None
     _lookup: dict = field(default_factory=dict, repr=False)
 
     def texels(self, H: int, W: int, sampling: str) -> tuple[Tensor, Tensor | None]:
@@ -116,7 +119,7 @@ class Prepared:
                             mv(t.irradiance), mv(t.l)) for t in self.lights]
         envs = [EnvTerm(e.light, mv(e.index), mv(e.local)) for e in self.envs]
         return Prepared(self.n_samples, mv(self.sample), mv(self.uv), mv(self.n), mv(self.v), lights, envs,
-                        self.gbuffer)
+                        self.gbuffer, None if self.faced is None else mv(self.faced))
 
 
 def _as_list(lights) -> list:
@@ -153,6 +156,7 @@ def prepare(gbuffer: GBuffer, mesh: Mesh, lights, shadows: bool = True) -> Prepa
     facing = nv > 0
     raw = []  # (light, index, l, E)
     reached = torch.zeros(N, dtype=torch.bool, device=dev)
+    faced = torch.zeros(N, dtype=torch.bool, device=dev)
     env_raw = []
     for light in lights:
         if isinstance(light, Environment):
@@ -164,6 +168,7 @@ def prepare(gbuffer: GBuffer, mesh: Mesh, lights, shadows: bool = True) -> Prepa
         nl = (g.normal * l).sum(-1)
         ngl = (g.geo_normal * l).sum(-1)
         ok = facing & (nl > 0) & (ngl > 0)
+        faced |= ok
         idx = torch.nonzero(ok).squeeze(-1)
         E = E[idx]
         if shadows and len(idx):
@@ -183,7 +188,7 @@ def prepare(gbuffer: GBuffer, mesh: Mesh, lights, shadows: bool = True) -> Prepa
         ang = Angles.from_vectors(g.normal[idx], l, g.view[idx])
         terms.append(LightTerm(light, idx, local_of[idx], ang, E, l))
     envs = [EnvTerm(light, idx, local_of[idx]) for light, idx in env_raw]
-    return Prepared(N, sample, g.uv[sample], n, v, terms, envs, gbuffer)
+    return Prepared(N, sample, g.uv[sample], n, v, terms, envs, gbuffer, faced)
 
 
 def check_maps(model: Model, maps: Mapping[str, Tensor]) -> None:
