@@ -78,11 +78,6 @@ from materials.roughness import R_MIN
 
 #: Angle (degrees) beyond which a sample counts as grazing.
 GRAZING_DEG = 80.0
-#: Nielsen's stage groups, by canonical parameter name.
-DIFFUSE_SCALE = ("albedo",)
-SPECULAR_SCALE = ("specular", "f0")
-#: Parameters whose lower bound is raised to R_MIN during fitting.
-ROUGHNESS_LIKE = ("roughness", "coat_roughness")
 
 
 # -- samples ----------------------------------------------------------------------------------
@@ -182,7 +177,7 @@ def _bounds(spec: ParamSpec, overrides: Mapping[str, tuple[float, float]]) -> _P
     lo, hi = spec.low, spec.high
     if spec.name in overrides:
         lo, hi = overrides[spec.name]
-    elif spec.name in ROUGHNESS_LIKE:
+    elif spec.role == "roughness":  # the conversions clamp r to [R_MIN, 1]: below it the loss is flat
         lo = max(lo, R_MIN)
     if not (math.isfinite(lo) and hi > lo):
         raise ValueError(f"fit: parameter '{spec.name}' needs a finite lower bound below its upper bound, "
@@ -190,12 +185,9 @@ def _bounds(spec: ParamSpec, overrides: Mapping[str, tuple[float, float]]) -> _P
     return _Param(spec, float(lo), float(hi))
 
 
-def _group(name: str) -> str:
-    if name in DIFFUSE_SCALE:
-        return "diffuse"
-    if name in SPECULAR_SCALE:
-        return "specular"
-    return "shape"
+def _group(spec: ParamSpec) -> str:
+    """Nielsen's stage group of a parameter (its spec's role): the diffuse scale, a specular scale, or shape."""
+    return spec.role if spec.role in ("diffuse", "specular") else "shape"
 
 
 # -- results ----------------------------------------------------------------------------------
@@ -282,7 +274,7 @@ def _initial(model: Model, params: list[_Param], init: Mapping[str, Tensor] | No
         s = p.spec
         if init is not None and s.name in init:
             val = torch.as_tensor(init[s.name], dtype=dtype).reshape(-1).expand(s.channels).clone()
-        elif _group(s.name) == "shape" and math.isfinite(p.hi) and restarts > 1:
+        elif _group(s) == "shape" and math.isfinite(p.hi) and restarts > 1:
             val = torch.full((s.channels,), p.lo + (p.hi - p.lo) * (k + 1) / (restarts + 1), dtype=dtype)
         else:
             val = torch.full((s.channels,), float(s.default), dtype=dtype)
@@ -335,7 +327,8 @@ def fit_brdf(model: Model | str, target: Model | Callable[[Angles], Tensor], sam
     if procedure == "joint":
         stages = [tuple(names)]
     else:
-        groups = {g: tuple(n for n in names if _group(n) == g) for g in ("diffuse", "specular", "shape")}
+        groups = {g: tuple(p.spec.name for p in params if _group(p.spec) == g)
+                  for g in ("diffuse", "specular", "shape")}
         stages = [groups["diffuse"] + groups["specular"], groups["shape"], groups["shape"] + groups["specular"]]
     stages = [s for s in stages if s]
 
@@ -394,7 +387,7 @@ def fit_brdf(model: Model | str, target: Model | Callable[[Angles], Tensor], sam
                         x.copy_(b)
         return {k: v.detach() for k, v in u.items()}
 
-    spread = any(_group(p.spec.name) == "shape" and math.isfinite(p.hi) for p in params)
+    spread = any(_group(p.spec) == "shape" and math.isfinite(p.hi) for p in params)
     n_starts = int(restarts) if spread else 1  # identical starts would repeat the same fit
     best_u, best_obj, per_restart = None, math.inf, []
     for k in range(n_starts):

@@ -11,11 +11,10 @@ import torch
 from torch import Tensor
 
 import materials
-from materials import Angles
+from materials import CANONICAL, Angles
 
-#: Parameters used for the lobe plots: a mid-rough dielectric, unless a model needs others.
-PLOT_PARAMS = {"albedo": 0.5, "f0": 0.04, "roughness": 0.4, "specular": 0.2, "ior": 1.5, "mix": 0.5,
-               "absorption": 0.05, "coat_ior": 1.5, "coat_roughness": 0.2, "mask": 1.0}
+#: Parameters used for the lobe plots (each spec's ``plot_value``): a mid-rough dielectric, unless a model needs others.
+PLOT_PARAMS = {p.name: p.plot_value for p in CANONICAL.values()}
 
 
 def lobe_in_plane(model, theta_v_deg: float, n: int = 361, params: dict | None = None):

@@ -375,8 +375,8 @@ def _region_table(has_f0: bool) -> dict[int, dict[str, Tensor]]:
     gold, copper = _presets.f0("gold", torch.float64), _presets.f0("copper", torch.float64)
     plastic = _presets.f0("polystyrene", torch.float64)
     zero3 = t(0.0, 0.0, 0.0)
-    common = {"absorption": zero3, "coat_ior": t(1.5), "coat_roughness": t(0.1), "mask": t(1.0)}
-    table = {
+    # a parameter a row does not give keeps its ParamSpec default (no coat: absorption 0, coat η 1.5, mask 1)
+    return {
         1: {"albedo": t(0.70, 0.25, 0.15), "f0": t(0.04, 0.04, 0.04), "roughness": t(0.75), "mix": t(0.3)},
         2: {"albedo": t(0.10, 0.25, 0.60), "f0": plastic, "roughness": t(0.25), "mix": t(0.7)},
         3: {"albedo": 0.9 * gold if not has_f0 else zero3, "f0": gold, "roughness": t(0.35), "mix": t(0.5)},
@@ -385,10 +385,6 @@ def _region_table(has_f0: bool) -> dict[int, dict[str, Tensor]]:
             "absorption": t(0.2, 0.8, 2.0), "coat_ior": t(1.5), "coat_roughness": t(0.05)},
         6: {},  # gradients, filled per texel
     }
-    for row in table.values():
-        for key, val in common.items():
-            row.setdefault(key, val)
-    return table
 
 
 def procedural_maps(model: Model, size: int | tuple[int, int] = 256, n_materials: int = len(REGION_NAMES),
@@ -426,10 +422,7 @@ def procedural_maps(model: Model, size: int | tuple[int, int] = 256, n_materials
         "f0": (0.02 + 0.06 * v)[..., None].expand(H, W, 3),
         "roughness": (0.9 - 0.75 * v)[..., None],
         "mix": su[..., None],
-        "absorption": torch.zeros(H, W, 3, dtype=torch.float64),
-        "coat_ior": torch.full((H, W, 1), 1.5, dtype=torch.float64),
         "coat_roughness": (0.05 + 0.3 * v)[..., None],
-        "mask": torch.ones(H, W, 1, dtype=torch.float64),
     }
     checker = ((torch.floor(su * 4) + torch.floor(v * 4 * n_reg / 1.0)) % 2 == 1)
     maps = {}

@@ -106,8 +106,8 @@ def test_non_negative_zero_behind_reciprocal_and_cosine_form(name, options):
         torch.testing.assert_close(m.cosine_brdf(g, p), f * g.nl, rtol=1e-10, atol=1e-300, msg=key)
 
 
-#: Each reflectance parameter is set to 1 in turn, the others to 0.
-REFLECTANCES = ("albedo", "f0", "specular")
+#: The reflectances (parameters whose role is to scale a lobe) are set to 1 in turn, the others to 0.
+REFLECTANCES = tuple(p.name for p in materials.CANONICAL.values() if p.role in ("diffuse", "specular"))
 #: Roughness from 0.5 up: sharper lobes seen at 85° need far more nodes than a test can afford (at r = 0.3 the GGX
 #: albedo at 85° is 0.19 short with 128² nodes, 0.04 with 256²); the family tests check them at their own.
 ROUGHNESS = (0.5, 1.0)

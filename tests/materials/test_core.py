@@ -145,3 +145,28 @@ def test_brdf_cosine_brdf_and_environment_validate_their_parameters_once(monkeyp
     known.brdf(g, known.defaults((1,)))
     materials.get("lambert")(n[0], n[0], n[0])
     assert calls == [layered.name, known.name, "lambert"]
+
+
+def test_param_spec_declares_its_fit_export_and_figure_facts_and_checks_them():
+    from dataclasses import replace
+
+    from materials.params import ALBEDO, CANONICAL, F0, IOR, ROUGHNESS, ParamSpec, preview_transfer
+
+    # the colours' previews are sRGB-encoded, everything else (and maps that are no parameter) linear
+    assert [p.name for p in CANONICAL.values() if p.transfer == "srgb"] == ["albedo", "f0"]
+    assert preview_transfer("f0") == "srgb" and preview_transfer("coverage") == "linear"
+    # roles: Nielsen's stage groups and the energy contract's reflectances
+    assert {p.name for p in CANONICAL.values() if p.role in ("diffuse", "specular")} == {"albedo", "f0", "specular"}
+    assert {p.name for p in CANONICAL.values() if p.role == "roughness"} == {"roughness", "coat_roughness"}
+    assert [p.name for p in CANONICAL.values() if p.shared] == ["coat_ior", "coat_roughness"]
+    # thresholds: declared, or 2 % of the range (of 1 for a wider one)
+    assert (ALBEDO.threshold, ROUGHNESS.threshold, IOR.threshold) == (0.01, 0.02, 0.05)
+    assert ParamSpec("t", 1, 1.0, 3.0, 1.5, "test").threshold == 0.02
+    assert ParamSpec("t", 1, 0.0, 0.5, 0.1, "test").threshold == 0.01
+    assert replace(ALBEDO, linear=False).prior_unit == 0.3  # a model's variant keeps every fact
+    assert (F0.diffuse_only, ROUGHNESS.diffuse_only, ROUGHNESS.plot_value, F0.plot_value) == (0.0, 1.0, 0.4, 0.04)
+    for bad, match in (({"role": "coat"}, "role must be one of"), ({"transfer": "gamma"}, "transfer must be one of"),
+                       ({"plot": 2.0}, r"plot 2.0 lies outside \[0.0, 1.0\]"),
+                       ({"observable_std": 0.0}, "observable_std must be a positive number")):
+        with pytest.raises(ValueError, match=match):
+            ParamSpec("t", 1, 0.0, 1.0, 0.5, "test", **bad)
