@@ -5,7 +5,8 @@ maps and the solver optimises only those. The canonical specs below are the sing
 known about a parameter: name, channel count, range, default, its role in a fit, how its previews are
 encoded, its observability threshold and prior unit in the fit, where an export stores it, and the value
 the lobe figures show (DESIGN.md, "Parameters and their canonical maps"). The tables of ``capture`` that
-need one of these read it from here. A model that needs a different default or linearity uses
+need one of these read it from here, and ``docs/models.md``'s parameter table is generated from them
+(:func:`markdown_table`, ``scripts/param_table.py``). A model that needs a different default or linearity uses
 :func:`dataclasses.replace`. Adding a model with a new parameter means a new spec here and the model's file.
 """
 
@@ -207,3 +208,28 @@ def preview_transfer(name: str) -> str:
     is no parameter (coverage, confidence)."""
     spec = CANONICAL.get(name)
     return spec.transfer if spec is not None else "linear"
+
+
+def _number(x: float) -> str:
+    return "∞" if x == math.inf else f"{x:.6g}"
+
+
+def markdown_table(specs: Mapping[str, ParamSpec] | None = None) -> str:
+    """The parameter table of ``docs/models.md`` (a markdown table, one row per spec, :data:`CANONICAL` by
+    default), generated so that the page cannot drift from the specs."""
+    specs = CANONICAL if specs is None else specs
+    head = ("| parameter | channels | range | default | role | fitted | preview | observable below | prior unit "
+            "| export (diffuse-only value) | lobe figures | meaning |")
+    rows = [head, "|" + "---|" * head.count(" | ") + "---|"]
+    for p in specs.values():
+        export = p.export or "—"
+        if p.diffuse_only is not None:
+            export += f" ({_number(p.diffuse_only)})"
+        role = p.role + (", closed form" if p.linear else "")
+        rows.append(
+            f"| `{p.name}` | {p.channels} | [{_number(p.low)}, {_number(p.high)}] | {_number(p.default)} | {role} "
+            f"| {'per object' if p.shared else 'per texel'} | {p.transfer} | {_number(p.threshold)} "
+            f"| {_number(p.prior_unit) if p.prior_unit is not None else '= threshold'} | {export} "
+            f"| {_number(p.plot_value)} | {p.description} |"
+        )
+    return "\n".join(rows)

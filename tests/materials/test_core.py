@@ -170,3 +170,16 @@ def test_param_spec_declares_its_fit_export_and_figure_facts_and_checks_them():
                        ({"observable_std": 0.0}, "observable_std must be a positive number")):
         with pytest.raises(ValueError, match=match):
             ParamSpec("t", 1, 0.0, 1.0, 0.5, "test", **bad)
+
+
+def test_the_parameter_table_of_docs_models_md_is_the_generated_one():
+    from pathlib import Path
+
+    from materials.params import CANONICAL, markdown_table
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "models.md").read_text(encoding="utf-8")
+    committed = text.split("<!-- begin:parameters -->\n", 1)[1].split("\n<!-- end:parameters -->", 1)[0]
+    assert committed == markdown_table(), "docs/models.md is stale: run python scripts/param_table.py"
+    rows = committed.splitlines()
+    assert len(rows) == 2 + len(CANONICAL) and rows[2].startswith("| `albedo` | 3 | [0, 1] | 0.5 | diffuse")
+    assert "| `absorption` | 3 | [0, ∞] |" in committed and "atlas tex2 A (glossiness g) (1)" in committed
