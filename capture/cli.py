@@ -9,6 +9,10 @@
     shadecap merge-hdr IMG... --times T... --out FILE.exr
     shadecap models                                    list every reflectance model
 
+``scripts/make_synthetic.py``, ``scripts/reconstruct.py`` and ``scripts/export_atlas.py`` are these commands under
+their own name (:func:`script_main`): the same parser, so every option exists in both and ``--help`` names the
+script.
+
 Errors a user can fix (bad dataset, unknown model, existing output folder, an output that would
 overwrite an input, an unwritable output folder, a full disk) print one line naming the file/field
 and exit with status 2; they never print a traceback. Every output folder is checked before any
@@ -94,12 +98,16 @@ def _add_synth_args(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_reconstruct(args) -> int:
+    import torch
+
     from capture.reconstruct import reconstruct
 
-    extra = {"pooled": args.pooled} if args.pooled is not None else {}
+    extra = {k: getattr(args, k) for k in ("pooled", "iterations", "grid", "schedule", "smoothness")
+             if getattr(args, k) is not None}
     report = reconstruct(args.dataset, model=args.model, out_dir=args.out, force=args.force,
                          solver=args.solver, loss=args.loss, texture_size=args.tex, holdout=args.holdout,
-                         footprint=not args.pixel_centres, **known_options(args), **extra)
+                         footprint=not args.pixel_centres, sampling=args.sampling, threads=args.threads,
+                         dtype=torch.float64 if args.float64 else torch.float32, **known_options(args), **extra)
     summary = Path(args.out) / "summary.txt"
     print(summary.read_text() if summary.exists() else report)
     return 0
@@ -115,6 +123,15 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
                    help="fast: per-texel Gauss-Newton/LM with closed-form linear parameters; adam: first order")
     p.add_argument("--loss", choices=("l2", "huber", "l1"), default="l2", help="robust loss (huber/l1 for highlights)")
     p.add_argument("--tex", type=int, default=None, help="texture size of the recovered maps (default: the dataset's)")
+    p.add_argument("--sampling", choices=("nearest", "bilinear"), default=None,
+                   help="how samples read the maps (default: as the dataset's ground truth, else bilinear)")
+    p.add_argument("--iterations", type=int, default=None, help="maximum iterations (fast: per-texel LM; adam: steps)")
+    p.add_argument("--grid", type=int, default=None, help="fast path: grid size of the closed-form initialisation")
+    p.add_argument("--schedule", choices=("joint", "staged"), default=None,
+                   help="fast path: all parameters every iteration, or Nielsen's stages (scales, shape, all)")
+    p.add_argument("--smoothness", type=float, default=None, help="fast path: weight of a neighbour prior (0 = off)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (1 is faster on a loaded machine)")
+    p.add_argument("--float64", action="store_true", help="evaluate the model in float64 (precision studies)")
     add_pooled_arg(p)
     add_known_args(p)
     add_holdout_arg(p)
@@ -180,7 +197,8 @@ def _cmd_export(args) -> int:
 
     side = export_atlas_dirs(args.recon_dirs, args.out, atlas_size=args.size, gutter=args.gutter, bits=args.bits,
                              fmt=args.format, transfer=args.transfer, force=args.force, glb=not args.no_glb,
-                             material_model=args.material_model, texture_sets=args.texture_sets)
+                             material_model=args.material_model, texture_sets=args.texture_sets,
+                             compensation=args.compensation)
     size = side["size"]
     out = Path(args.out)
     print(f"wrote {out} ({size['width']}x{size['height']} atlas, {len(side['materials'])} material(s), "
@@ -192,7 +210,8 @@ def _cmd_export(args) -> int:
         kind = "metallic-roughness" if gl["material_model"] == "metallic-roughness" else "metallic 0"
         if gl["mapping"].get("specular_extension") or gl["material_model"] == "specular":
             kind += " + KHR_materials_specular"
-        print(f"  {gl['file']}: glTF {kind}, Y-up, {gl['bits']}-bit PNG textures{extra}")
+        print(f"  {gl['file']}: glTF {kind}, Y-up, {gl['bits']}-bit PNG textures, compensation "
+              f"{gl['compensation']}{extra}")
     for p in sorted(q for q in out.rglob("*") if q.is_file()):
         print(f"  {p.relative_to(out).as_posix()}  ({p.stat().st_size} bytes)")
     return 0
@@ -238,6 +257,10 @@ def _add_export_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--material-model", choices=("metallic-roughness", "specular"), default="metallic-roughness",
                    help="GLB material: glTF metallic-roughness (metals as metallic 1; default) or metallic 0 "
                         "with f0 in KHR_materials_specular")
+    p.add_argument("--compensation", choices=("none", "layering", "layering+multiscatter"), default="layering",
+                   help="what the GLB's textures compensate of the viewer's BRDF: the diffuse dimmed under the "
+                        "dielectric specular layer (default; glTF's BRDF, Blender >= 4), also the multiple "
+                        "scattering of metals (Blender >= 4's Cycles), or none (Blender 3.x; docs/export.md)")
     p.add_argument("--texture-sets", type=_texture_sets, default="all", metavar="SETS",
                    help="comma-separated engine texture sets written into textures/: gltf, unreal, unity-hdrp; "
                         "'all' (default) or 'none'")
@@ -407,40 +430,58 @@ def _add_merge_hdr_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="shadecap", description="Differentiable material capture (see README.md).")
-    sub = ap.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("demo", help="synthesise the default scene, reconstruct, export the atlas, print errors")
+def _add_demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--model", default="ggx-lambert", help="model to reconstruct with (or 'auto')")
     p.add_argument("--small", action="store_true", help="a small, fast scene instead of the default one")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
-    p.set_defaults(func=_cmd_demo)
-    p = sub.add_parser("synth", help="write a synthetic dataset with ground truth")
-    _add_synth_args(p)
-    p.set_defaults(func=_cmd_synth)
-    p = sub.add_parser("reconstruct", help="recover material maps from a dataset")
+
+
+def _add_reconstruct_command_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", help="dataset folder (docs/dataset-format.md)")
     p.add_argument("--out", required=True, help="output folder")
     _add_reconstruct_args(p)
-    p.set_defaults(func=_cmd_reconstruct)
-    p = sub.add_parser("export-atlas", help="pack reconstructions into a Schüler two-RGBA atlas (+ glTF)")
+
+
+def _add_export_command_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("recon_dirs", nargs="+", help="reconstruction output folders")
     _add_export_args(p)
-    p.set_defaults(func=_cmd_export)
-    p = sub.add_parser("import", help="import a real capture (COLMAP, transforms.json, OpenCV YAML) as a dataset")
-    _add_import_args(p)
-    p.set_defaults(func=_cmd_import)
-    p = sub.add_parser("calibrate-lights", help="estimate the lights' intensities from a grey card or a known-albedo "
-                       "region; write a new dataset")
-    _add_calibrate_lights_args(p)
-    p.set_defaults(func=_cmd_calibrate_lights)
-    p = sub.add_parser("merge-hdr", help="merge bracketed exposures into one linear radiance EXR")
-    _add_merge_hdr_args(p)
-    p.set_defaults(func=_cmd_merge_hdr)
-    p = sub.add_parser("models", help="list every reflectance model with its parameters")
-    p.set_defaults(func=_cmd_models)
+
+
+#: Every command: its one-line help, the function adding its arguments, the function running it.
+COMMANDS = {
+    "demo": ("synthesise the default scene, reconstruct, export the atlas, print errors", _add_demo_args, _cmd_demo),
+    "synth": ("write a synthetic dataset with ground truth", _add_synth_args, _cmd_synth),
+    "reconstruct": ("recover material maps from a dataset", _add_reconstruct_command_args, _cmd_reconstruct),
+    "export-atlas": ("pack reconstructions into a Schüler two-RGBA atlas (+ glTF)", _add_export_command_args,
+                     _cmd_export),
+    "import": ("import a real capture (COLMAP, transforms.json, OpenCV YAML) as a dataset", _add_import_args,
+               _cmd_import),
+    "calibrate-lights": ("estimate the lights' intensities from a grey card or a known-albedo region; write a new "
+                         "dataset", _add_calibrate_lights_args, _cmd_calibrate_lights),
+    "merge-hdr": ("merge bracketed exposures into one linear radiance EXR", _add_merge_hdr_args, _cmd_merge_hdr),
+    "models": ("list every reflectance model with its parameters", lambda p: None, _cmd_models),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="shadecap", description="Differentiable material capture (see README.md).")
+    sub = ap.add_subparsers(dest="command", required=True)
+    for name, (text, add_args, func) in COMMANDS.items():
+        p = sub.add_parser(name, help=text)
+        add_args(p)
+        p.set_defaults(func=func)
     return ap
+
+
+def command_parser(command: str, prog: str) -> argparse.ArgumentParser:
+    """The parser of one command on its own, named ``prog`` (a script's file name): the same arguments as
+    ``shadecap COMMAND``."""
+    text, add_args, func = COMMANDS[command]
+    p = argparse.ArgumentParser(prog=prog, description=text[0].upper() + text[1:] + " (see README.md).")
+    add_args(p)
+    p.set_defaults(func=func, command=command)
+    return p
 
 
 def _import_eagerly() -> None:
@@ -473,27 +514,35 @@ def _error_text(exc: BaseException) -> str:
     return " ".join(str(exc).split("\n")) if str(exc) else type(exc).__name__
 
 
-def run(command: str, func, args) -> int:
+def run(command: str, func, args, name: str | None = None) -> int:
     """``func(args)`` with the command line's handling: a user error is one line on stderr and status 2, Ctrl-C
     is ``interrupted; nothing written`` and status 130 (a command that finished some outputs before, as ``demo``
-    does, lists them in ``args.completed``)."""
+    does, lists them in ``args.completed``). Messages start with ``name`` (default ``shadecap COMMAND``)."""
+    name = name or f"shadecap {command}"
     try:
         if command != "models":
             _import_eagerly()
         return func(args)
     except USER_ERRORS as exc:
-        print(f"shadecap {command}: error: {_error_text(exc)}", file=sys.stderr)
+        print(f"{name}: error: {_error_text(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         done = getattr(args, "completed", None)
         kept = f" by the step in progress (complete: {', '.join(map(str, done))})" if done else ""
-        print(f"\nshadecap {command}: interrupted; nothing written{kept}", file=sys.stderr)
+        print(f"\n{name}: interrupted; nothing written{kept}", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     return run(args.command, args.func, args)
+
+
+def script_main(command: str, script: str, argv: list[str] | None = None) -> int:
+    """Run the command ``command`` as the script ``script`` (its file name): the command's own parser, whose
+    ``--help``, usage and error lines name the script. ``argv`` defaults to ``sys.argv[1:]``."""
+    args = command_parser(command, script).parse_args(sys.argv[1:] if argv is None else argv)
+    return run(command, args.func, args, name=script)
 
 
 if __name__ == "__main__":

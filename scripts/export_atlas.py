@@ -3,7 +3,7 @@
 
     python scripts/export_atlas.py RECON_DIR [RECON_DIR ...] --out DIR [--force] [--bits 16] [--transfer srgb]
 
-The same as `shadecap export-atlas`; see docs/export.md.
+The same as `shadecap export-atlas` (one parser, every option in both); see docs/export.md.
 """
 
 import sys
@@ -11,11 +11,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from capture.cli import main as cli_main  # noqa: E402
+from capture.cli import script_main  # noqa: E402
 
 
 def main(argv=None) -> int:
-    return cli_main(["export-atlas", *(sys.argv[1:] if argv is None else argv)])
+    return script_main("export-atlas", Path(__file__).name, argv)
 
 
 if __name__ == "__main__":

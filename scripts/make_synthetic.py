@@ -6,7 +6,7 @@
     python scripts/make_synthetic.py --mesh torus --views 24 --size 128 --noise 1000 --read-noise 0.002 \\
         --encoding srgb --out /tmp/torus_png
 
-The same as `shadecap synth`; `--help` lists every option.
+The same as `shadecap synth` (one parser, every option in both); `--help` lists every option.
 """
 
 import sys
@@ -14,11 +14,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from capture.cli import main as cli_main  # noqa: E402
+from capture.cli import script_main  # noqa: E402
 
 
 def main(argv=None) -> int:
-    return cli_main(["synth", *(sys.argv[1:] if argv is None else argv)])
+    return script_main("synth", Path(__file__).name, argv)
 
 
 if __name__ == "__main__":

@@ -98,3 +98,46 @@ def test_holdout_views_on_the_command_line(tmp_path, capsys):
     assert main(["reconstruct", str(tmp_path / "d"), "--model", "ggx-lambert", "--out", str(tmp_path / "x"),
                  "--holdout", "0,1,2"]) == 2
     assert "leaves no view to fit" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def _script(name: str):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"{name}_script", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_scripts_are_the_commands_under_their_own_name(tmp_path, capsys):
+    # one parser per command: the script's --help, usage and error lines name the script, not `shadecap ...`
+    import json
+
+    from capture.cli import COMMANDS, build_parser, command_parser
+    from capture.synthetic import make_synthetic, small_scene
+
+    for script, command in (("reconstruct", "reconstruct"), ("export_atlas", "export-atlas"),
+                            ("make_synthetic", "synth")):
+        with pytest.raises(SystemExit):
+            _script(script).main(["--help"])
+        out = capsys.readouterr().out
+        assert out.startswith(f"usage: {script}.py ") and "shadecap" not in out.split("\n\n")[0]
+        sub = build_parser()._subparsers._group_actions[0].choices[command]
+        flags = lambda p: [(tuple(a.option_strings), a.dest, a.default) for a in p._actions]  # noqa: E731
+        assert flags(command_parser(command, f"{script}.py")) == flags(sub)
+    assert set(COMMANDS) == {"demo", "synth", "reconstruct", "export-atlas", "import", "calibrate-lights",
+                             "merge-hdr", "models"}
+    assert _script("reconstruct").main([str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err.startswith("reconstruct.py: error:")
+    # the fast path's options the script used to have alone reach the solver from either entry point
+    make_synthetic(small_scene("ggx-lambert", image_size=32, texture_size=8, n_views=3), tmp_path / "d")
+    flags = ["--iterations", "3", "--grid", "4", "--schedule", "staged", "--smoothness", "0.5",
+             "--sampling", "nearest", "--threads", "1", "--float64"]
+    assert _script("reconstruct").main([str(tmp_path / "d"), "--model", "ggx-lambert", "--out", str(tmp_path / "o"),
+                                        *flags]) == 0
+    options = json.loads((tmp_path / "o" / "report.json").read_text())["fit"]["options"]
+    assert (options["iterations"], options["grid"], options["schedule"], options["smoothness"],
+            options["sampling"]) == (3, 4, "staged", 0.5, "nearest")
+    capsys.readouterr()
