@@ -159,6 +159,10 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
         # nothing to share from (no texel determined the shared parameters, or the model has none):
         # fall back to the fill, as without sharing
         share = bool(sinfo["materials"])
+    # with pixel footprints and nothing shared, the footprint solve is the joint solve over all texels: the
+    # pixel-centre one (and its fill) before it only moves the start (Mitsuba torus, 12 × 256², Lambert: well-lit
+    # albedo 0.0110 with it, 0.0107 without, χ² per residual 0.19 both)
+    joint = joint and (share or footprints is None or joint_iterations is not None)
     if joint and fill_before_joint and not share:
         # per-texel parameters the photos do not determine vary wildly from texel to texel; under
         # bilinear sampling they would mix into the neighbours' predictions, so they are replaced

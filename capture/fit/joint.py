@@ -16,7 +16,7 @@ from ..observations import Observations
 from .layout import ACC, MAX_STEP, Layout, SolverError
 from .noise import NOISE, irls_weights, noise_sigma, photo_noise_ratio, robust_rho
 from .observability import std_threshold
-from .operators import pixel_operator, sampling_operator
+from .operators import CsrPattern, pixel_operator, sampling_operator
 from .sharing import shared_default
 from .texel import jacobian, weighted_cost
 
@@ -82,6 +82,12 @@ class _SharingPrior:
         col = ok[:-2] & ~ok[1:-1] & ok[2:]
         self.bridge_i = torch.cat([flat[:, :-2][row], flat[:-2][col]])
         self.bridge_j = torch.cat([flat[:, 2:][row], flat[2:][col]])
+        # every pair the energy may count (edges along u, along v, bridges) as flat texel indices, in the order of
+        # the weights of :meth:`linearise`; the product uses them as one sparse matrix (:meth:`_laplacian`)
+        self.pair_i = torch.cat([flat[:, :-1].reshape(-1), flat[:-1].reshape(-1), self.bridge_i])
+        self.pair_j = torch.cat([flat[:, 1:].reshape(-1), flat[1:].reshape(-1), self.bridge_j])
+        self._pattern = None
+        self.lap = None
         self.delta = float(delta)
         self.mu = 0.0
         self.omega = None
@@ -154,6 +160,10 @@ class _SharingPrior:
             self.omega_u = self.nu * irls_weights(da, "huber", self.anchor_delta) * self.anchored
             g = g - self.omega_u * da
             deg = deg + self.omega_u
+        C = du.shape[-1]
+        wp = torch.cat([wu.expand(*du.shape).reshape(-1, C), wv.expand(*dv.shape).reshape(-1, C), wb.expand(*db.shape)])
+        anchor = self.omega_u if self.target is not None and self.nu > 0 else torch.zeros_like(canon[:, :C])
+        self.lap = self._laplacian(wp, anchor.expand(canon.shape[0], C))
         scale = self._columns(dp) / self.thr
         return self._full(g * scale), self._full(deg * scale.square())
 
@@ -170,15 +180,28 @@ class _SharingPrior:
             acc.index_add_(0, self.bridge_i, first * fb).index_add_(0, self.bridge_j, second * fb)
         return acc
 
+    def _laplacian(self, wp: Tensor, diag: Tensor) -> Tensor:
+        """The prior's Gauss-Newton matrix over the ``[T, C]`` columns (flat, texel-major) as one sparse CSR matrix:
+        ``Σ_pairs w (e_i − e_j)(e_i − e_j)ᵀ`` per column plus ``diag [T, C]`` (the anchor's weights), from the pair
+        weights ``wp [pairs, C]``. The pattern and its sort order are built once; a product then costs one sparse
+        product instead of slicing the grid (41 against 92 ms on 256² maps with GGX + Lambert's 7 columns, 2 threads,
+        equal to 2e-16)."""
+        T, C = diag.shape
+        if self._pattern is None:
+            ch = torch.arange(C, device=diag.device)
+            i = self.pair_i[:, None] * C + ch
+            j = self.pair_j[:, None] * C + ch
+            d = torch.arange(T, device=diag.device)[:, None] * C + ch
+            rows = torch.cat([i, j, i, j, d]).reshape(-1)
+            cols = torch.cat([i, j, j, i, d]).reshape(-1)
+            self._pattern = CsrPattern.of(rows, cols, (T * C, T * C))
+        return self._pattern.matrix(torch.cat([wp, wp, -wp, -wp, diag]).reshape(-1))
+
     def matvec(self, v: Tensor, dp: Tensor) -> Tensor:
+        """The prior's Gauss-Newton product with ``v [T, P]`` in θ, at the weights of the last :meth:`linearise`."""
         scale = self._columns(dp) / self.thr
         u = self._columns(v) * scale
-        ug = u.reshape(self.H, self.W, -1)
-        wu, wv, wb = self.omega
-        acc = self._spread(wu * (ug[:, :-1] - ug[:, 1:]), wv * (ug[:-1] - ug[1:]),
-                           wb * (u[self.bridge_i] - u[self.bridge_j]), 1.0, -1.0)
-        if self.target is not None and self.nu > 0:
-            acc = acc + self.omega_u * u
+        acc = torch.mv(self.lap, u.reshape(-1).contiguous()).reshape(u.shape)
         return self._full(acc * scale)
 
 
