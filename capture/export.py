@@ -40,6 +40,7 @@ import warnings
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -48,15 +49,18 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from materials import atlas as A
+from materials.microfacet import smith_g1_ggx, smith_g2_correlated_ggx
+from materials.roughness import roughness_to_alpha
 from renderer import imageio
 from renderer.mesh import Mesh, MeshError, load_mesh, save_mesh
 
 from .outputs import atomic_folder, check_output, json_text
 
 __all__ = [
-    "ATLAS_FORMAT", "MATERIAL_MODELS", "TEXTURE_SETS", "ExportError", "ExportWarning", "Material", "export_atlas",
-    "export_atlas_dirs", "from_metallic_roughness", "gltf_textures", "load_reconstruction", "read_atlas", "read_glb",
-    "tag_png", "to_metallic_roughness", "write_glb", "write_maps", "write_texture_sets", "yup_to_zup", "zup_to_yup",
+    "ATLAS_FORMAT", "COMPENSATIONS", "MATERIAL_MODELS", "TEXTURE_SETS", "ExportError", "ExportWarning", "Material",
+    "export_atlas", "export_atlas_dirs", "from_metallic_roughness", "gltf_textures",
+    "load_reconstruction", "multiscatter_factor", "read_atlas", "read_glb", "specular_albedo", "tag_png",
+    "to_metallic_roughness", "write_glb", "write_maps", "write_texture_sets", "yup_to_zup", "zup_to_yup",
 ]
 
 #: Version of the atlas folder format (``atlas.json`` → ``format``).
@@ -68,6 +72,9 @@ REQUIRED = ("albedo",)
 DIFFUSE_ONLY_DEFAULTS = {"f0": 0.0, "roughness": 1.0}
 #: F0 of glTF's dielectric (ior 1.5): ((1.5 − 1)/(1.5 + 1))².
 GLTF_DIELECTRIC_F0 = 0.04
+#: What the GLB's textures compensate of a viewer's BRDF (docs/export.md, "Compensation"): nothing, the diffuse
+#: layered under the dielectric specular (default), or that and the multiple scattering of the metals' GGX lobe.
+COMPENSATIONS = ("none", "layering", "layering+multiscatter")
 #: GLB material models: glTF's metallic-roughness (metals as metallic = 1) or the metallic = 0 + specular form.
 MATERIAL_MODELS = ("metallic-roughness", "specular")
 #: Engine texture sets written into ``textures/`` (see docs/export.md).
@@ -279,6 +286,7 @@ def export_atlas(
     materials, out, *, atlas_size: int | tuple[int, int] | None = None, gutter: int = 4, bits: int = 8,
     fmt: str = "png", transfer: str = "gamma2.2", force: bool = False, glb: bool = True,
     material_model: str = "metallic-roughness", texture_sets: Sequence[str] | None = TEXTURE_SETS,
+    compensation: str = "layering",
 ) -> dict:
     """Pack one or many materials into Schüler's two-RGBA atlas and write the atlas folder ``out``.
 
@@ -298,6 +306,8 @@ def export_atlas(
             or ``"specular"`` (metallic 0, f0 in KHR_materials_specular).
         texture_sets: engine texture sets written into ``textures/`` with the linear EXR maps
             (:func:`write_texture_sets`); None or ``()`` writes no ``textures/`` folder.
+        compensation: what the GLB's (and the ``gltf`` set's) textures compensate of the viewer's BRDF,
+            one of :data:`COMPENSATIONS` (:func:`gltf_textures`; docs/export.md, "Compensation").
 
     Returns:
         The sidecar dict written to ``out/atlas.json``.
@@ -314,6 +324,7 @@ def export_atlas(
         raise ExportError(f"transfer must be 'gamma2.2' (Schüler) or 'srgb', got {transfer!r}")
     if material_model not in MATERIAL_MODELS:
         raise ExportError(f"material_model must be one of {list(MATERIAL_MODELS)}, got {material_model!r}")
+    _check_compensation(compensation)
     if isinstance(texture_sets, str):
         texture_sets = [texture_sets]
     texture_sets = tuple(texture_sets or ())
@@ -401,7 +412,7 @@ def export_atlas(
         glb = not without
         if without and len(without) < len(mats):  # all without a mesh: nothing to put in a GLB, silently
             warnings.warn(f"no atlas.glb: material(s) {without} have no mesh", ExportWarning, stacklevel=2)
-    gl_tex = gltf_textures(lin_maps, material_model, bits) if glb or texture_sets else None
+    gl_tex = gltf_textures(lin_maps, material_model, bits, compensation) if glb or texture_sets else None
     set_tex = gl_tex if material_model == "metallic-roughness" else None
 
     # -- write everything into a temp folder, then rename into place
@@ -416,7 +427,7 @@ def export_atlas(
             zero = torch.zeros_like(coat_atlas[..., :1])
             imageio.write_exr(tmp / "coat.exr", torch.cat([coat_atlas[..., 3:5], zero], -1))
         if texture_sets:
-            written = write_texture_sets(tmp / "textures", lin_maps, texture_sets, bits, set_tex)
+            written = write_texture_sets(tmp / "textures", lin_maps, texture_sets, bits, set_tex, compensation)
             sidecar["texture_sets"] = {"folder": "textures", "files": written, "bits": bits,
                                        "layout": "same UVs as the atlas (docs/export.md, texture sets)"}
         meshes = []
@@ -434,7 +445,7 @@ def export_atlas(
             meshes.append(moved)
         if glb:
             sidecar["gltf"] = write_glb(tmp / "atlas.glb", meshes, lin_maps, material_model=material_model,
-                                        bits=bits, textures=gl_tex)
+                                        bits=bits, textures=gl_tex, compensation=compensation)
         (tmp / "atlas.json").write_text(json_text(sidecar) + "\n")
     return sidecar
 
@@ -652,6 +663,115 @@ def from_metallic_roughness(base_color: Tensor, metallic: Tensor, specular_f0: T
     return {"albedo": (1.0 - m) * b, "f0": (1.0 - m) * t + m * b}
 
 
+# --------------------------------------------------------------------------------------------
+# What a viewer adds to glTF's BRDF: diffuse layering, multiple scattering (docs/export.md, "Compensation")
+
+#: Roughness nodes of the albedo tables, r = k/32: linear interpolation is within 0.0032 (Ā₁) and 1e-4 (Ā₅) of the
+#: integral at the midpoints (measured against a table at r = k/64).
+_TABLE_NODES = 33
+#: Visible normals per viewing angle (a 64 × 64 midpoint grid) and Gauss-Legendre nodes in μ_o: within 0.0033 (Ā₁)
+#: and 1e-4 (Ā₅) of a 512² grid with 64 nodes (measured; 1 s against 450 s).
+_VNDF_GRID = 64
+_MU_NODES = 32
+
+
+@lru_cache(maxsize=1)
+def _albedo_tables() -> tuple[Tensor, Tensor]:
+    """Ā₁(r), Ā₅(r) at the nodes r = k/32: cosine-weighted hemispherical averages 2∫E(μ)μ dμ of the directional
+    albedo E(μ_o) = ∫ f μ_i dω_i of ggx-lambert's specular lobe (GGX D, Smith height-correlated G2) with the
+    Fresnel factor replaced by 1 (Ā₁) and by (1 − v·h)⁵ (Ā₅), so that Schlick's F gives f0 (Ā₁ − Ā₅) + Ā₅.
+
+    Visible-normal sampling (Heitz 2018, "Sampling the GGX Distribution of Visible Normals") makes E(μ_o) the
+    mean of G2(l, v)/G1(v) · F over the visible normals; they are taken on a midpoint grid, μ_o on Gauss-Legendre
+    nodes. Deterministic, about 1 s once per process."""
+    x, w = np.polynomial.legendre.leggauss(_MU_NODES)
+    mu = torch.from_numpy(0.5 * (x + 1.0))[:, None]  # [M, 1]
+    weight = torch.from_numpy(w)[:, None] * mu  # 2 ∫₀¹ E μ dμ = Σ w_k μ_k E(μ_k) on [−1, 1] mapped to [0, 1]
+    u = (torch.arange(_VNDF_GRID, dtype=torch.float64) + 0.5) / _VNDF_GRID
+    u1, u2 = (g.reshape(1, -1) for g in torch.meshgrid(u, u, indexing="ij"))
+    t1, t2 = u1.sqrt() * torch.cos(2 * math.pi * u2), u1.sqrt() * torch.sin(2 * math.pi * u2)  # [1, S]
+    sin_o = (1.0 - mu * mu).sqrt()
+    v = torch.stack([sin_o.expand(-1, t1.shape[1]), torch.zeros_like(t1).expand(mu.shape[0], -1),
+                     mu.expand(-1, t1.shape[1])], -1)  # [M, S, 3], azimuth 0
+    a1, a5 = [], []
+    for r in torch.linspace(0.0, 1.0, _TABLE_NODES, dtype=torch.float64):
+        alpha = roughness_to_alpha(r).item()
+        # the view stretched to α = 1, in the x-z plane: frame T1 = y, T2 = vs × T1
+        vs = torch.cat([alpha * sin_o, mu], -1)
+        vs = vs / vs.norm(dim=-1, keepdim=True)  # [M, 2] = (x, z)
+        sx, sz = vs[:, :1], vs[:, 1:]
+        blend = 0.5 * (1.0 + sz)
+        t2b = (1.0 - blend) * (1.0 - t1 * t1).sqrt() + blend * t2
+        up = (1.0 - t1 * t1 - t2b * t2b).clamp_min(0.0).sqrt()
+        nx, ny, nz = -t2b * sz + up * sx, t1.expand_as(t2b), t2b * sx + up * sz
+        h = torch.stack([alpha * nx, alpha * ny, nz.clamp_min(0.0)], -1)
+        h = h / h.norm(dim=-1, keepdim=True)
+        vh = (v * h).sum(-1, keepdim=True)
+        mu_i = (2.0 * vh * h[..., 2:] - v[..., 2:])  # n·l of the mirrored view
+        ratio = smith_g2_correlated_ggx(mu_i, mu[:, :, None].expand_as(mu_i), alpha) \
+            / smith_g1_ggx(mu[:, :, None].expand_as(mu_i), alpha)
+        ratio = torch.where(mu_i > 0, ratio, torch.zeros_like(ratio))[..., 0]
+        e1, e5 = ratio.mean(-1), (ratio * (1.0 - vh[..., 0]).clamp(0.0, 1.0) ** 5).mean(-1)
+        a1.append((weight[:, 0] * e1).sum())
+        a5.append((weight[:, 0] * e5).sum())
+    return torch.stack(a1), torch.stack(a5)
+
+
+def _interp(table: Tensor, roughness: Tensor) -> Tensor:
+    x = roughness.to(torch.float64).clamp(0.0, 1.0) * (_TABLE_NODES - 1)
+    i = x.floor().clamp(0, _TABLE_NODES - 2).long()
+    t = x - i
+    return table[i] * (1.0 - t) + table[i + 1] * t
+
+
+def _roughness_f0(roughness, f0, fn: str) -> tuple[Tensor, Tensor]:
+    r = torch.as_tensor(roughness, dtype=torch.float64)
+    f = torch.as_tensor(f0, dtype=torch.float64)
+    for name, x in (("roughness", r), ("f0", f)):
+        if not torch.isfinite(x).all() or (x < 0).any() or (x > 1).any():
+            raise ExportError(f"{fn}: {name} must be finite and in [0, 1]")
+    try:
+        torch.broadcast_shapes(r.shape, f.shape)
+    except RuntimeError:
+        raise ExportError(f"{fn}: roughness {tuple(r.shape)} and f0 {tuple(f.shape)} do not broadcast") from None
+    return r, f
+
+
+def specular_albedo(roughness, f0) -> Tensor:
+    """Ē(r, f0): the cosine-weighted hemispherical average of the directional albedo of ggx-lambert's specular
+    lobe (single scattering: GGX, Smith height-correlated, Schlick F with ``f0``) at perceptual roughness r —
+    the share of light, arriving evenly, that the lobe reflects. f0 (Ā₁(r) − Ā₅(r)) + Ā₅(r) from tables at
+    r = k/32 (:func:`_albedo_tables`), linear in r between them.
+
+    ``roughness`` and ``f0`` broadcast (e.g. ``[..., 1]`` and ``[..., 3]``); float64 result of their shape.
+    E.g. f0 = 0.04: 0.086 at r = 0, 0.053 at r = 0.5, 0.019 at r = 1.
+    """
+    r, f = _roughness_f0(roughness, f0, "specular_albedo")
+    a1, a5 = _albedo_tables()
+    return f * (_interp(a1, r) - _interp(a5, r)) + _interp(a5, r)
+
+
+def multiscatter_factor(roughness, f0) -> Tensor:
+    """s(r, f0) ≥ 1: how much a GGX lobe with multiple scattering reflects over the single-scattering lobe of
+    ggx-lambert, averaged over the hemisphere — Kulla & Conty 2017 ("Revisiting Physically Based Shading at
+    Imageworks"): the energy 1 − Ā₁ lost by single scattering comes back weighted by
+    F_ms = F̄² Ā₁ / (1 − F̄ (1 − Ā₁)), F̄ = f0 + (1 − f0)/21 (Schlick's cosine-weighted average), so
+    s = 1 + F_ms (1 − Ā₁) / Ē(r, f0). 1/Ā₁ for f0 = 1; 1 at r = 0. Shapes as :func:`specular_albedo`.
+    """
+    r, f = _roughness_f0(roughness, f0, "multiscatter_factor")
+    a1, _ = _albedo_tables()
+    e1 = _interp(a1, r)
+    f_avg = f + (1.0 - f) / 21.0
+    f_ms = f_avg * f_avg * e1 / (1.0 - f_avg * (1.0 - e1))
+    return 1.0 + f_ms * (1.0 - e1) / specular_albedo(r, f)
+
+
+def _layered(albedo: Tensor, roughness: Tensor, dielectric_f0) -> tuple[Tensor, Tensor]:
+    """albedo / (1 − Ē(r, F0 of the dielectric layer)), clamped to 1; returns it and the factor ``[..., 1]``."""
+    factor = 1.0 / (1.0 - specular_albedo(roughness, dielectric_f0))
+    return (albedo.to(torch.float64) * factor).clamp(max=1.0).to(albedo.dtype), factor
+
+
 def zup_to_yup(x) -> Tensor:
     """The dataset's Z-up world → glTF's Y-up: a rotation of −90° about X, (x, y, z) → (x, z, −y).
 
@@ -733,7 +853,16 @@ def _write_png(path, img: Tensor, bits: int = 8, transfer: str = "srgb", intent:
 # glTF textures, engine texture sets, GLB
 
 
-def _gltf_doc(model: str, specular: bool) -> dict:
+_COMPENSATION_DOC = {
+    "none": "none: base colour from the albedo as it is",
+    "layering": "diffuse divided by (1 - E), E the hemispherical albedo of the dielectric specular layer at the "
+                "texel's roughness (viewers that dim the diffuse under it: glTF's fresnel_mix, Blender >= 4)",
+    "layering+multiscatter": "layering, and the metals' F0 divided by the multiple-scattering gain of GGX at the "
+                             "texel's roughness (Kulla & Conty 2017; Blender >= 4's Cycles)",
+}
+
+
+def _gltf_doc(model: str, specular: bool, compensation: str = "none") -> dict:
     if model == "specular":
         return {
             "model": "glTF 2.0 pbrMetallicRoughness with metallic 0 + KHR_materials_specular",
@@ -741,6 +870,7 @@ def _gltf_doc(model: str, specular: bool) -> dict:
             "metallicRoughnessTexture": "R = 1 (occlusion, unused), G = roughness r (perceptual, alpha = r^2), "
                                         "B = metallic = 0; linear",
             "specularColorTexture": "RGB = f0 (sRGB); specularColorFactor 25, so F0 = 0.04 * 25 * texture = f0",
+            "compensation": _COMPENSATION_DOC[compensation],
         }
     doc = {
         "model": "glTF 2.0 pbrMetallicRoughness" + (" + KHR_materials_specular" if specular else ""),
@@ -748,6 +878,7 @@ def _gltf_doc(model: str, specular: bool) -> dict:
         "metallicRoughnessTexture": "R = 1 (occlusion, unused), G = roughness r (perceptual, alpha = r^2, as ours), "
                                     "B = metallic m; linear",
         "mapping": "per texel least squares of (1-m) b = albedo and 0.04 (1-m) + m b = f0 (docs/export.md)",
+        "compensation": _COMPENSATION_DOC[compensation],
     }
     if specular:
         doc["specularColorTexture"] = ("RGB = dielectric F0 t (sRGB), specularColorFactor 25: "
@@ -755,7 +886,14 @@ def _gltf_doc(model: str, specular: bool) -> dict:
     return doc
 
 
-def gltf_textures(maps: Mapping[str, Tensor], material_model: str = "metallic-roughness", bits: int = 8) -> dict:
+def _check_compensation(compensation) -> str:
+    if compensation not in COMPENSATIONS:
+        raise ExportError(f"compensation must be one of {list(COMPENSATIONS)}, got {compensation!r}")
+    return compensation
+
+
+def gltf_textures(maps: Mapping[str, Tensor], material_model: str = "metallic-roughness", bits: int = 8,
+                  compensation: str = "layering") -> dict:
     """The glTF textures of linear canonical maps (albedo, f0, roughness, optional mask), as tagged PNG bytes.
 
     Returns ``{"images": {"baseColor", "metallicRoughness"[, "specularColor"]: bytes}, "specular": bool,
@@ -763,9 +901,18 @@ def gltf_textures(maps: Mapping[str, Tensor], material_model: str = "metallic-ro
     ``material_model`` ``"metallic-roughness"`` (default) uses :func:`to_metallic_roughness` and adds
     KHR_materials_specular only when the core mapping's F0 error exceeds :data:`SPECULAR_TOLERANCE`
     somewhere; ``"specular"`` writes metallic 0 with f0 in the specular colour (the older form).
+
+    ``compensation`` (:data:`COMPENSATIONS`): ``"layering"`` (default) maps albedo / (1 − Ē(r, F0_d)) instead of
+    the albedo, where glTF's BRDF (and Blender ≥ 4, three.js) dims the diffuse under the dielectric specular
+    layer of F0_d = 0.04 (the extension's t where the GLB carries it; f0 in the specular form), Ē
+    its hemispherical albedo (:func:`specular_albedo`): the diffuse lobe then reflects our albedo's energy.
+    Clamped to 1. ``"layering+multiscatter"`` also divides the metals' F0 (the base colour, by metallic:
+    b / (1 + m (s − 1)); the specular colour in the specular form) by :func:`multiscatter_factor` s for
+    viewers whose GGX scatters more than once (Blender ≥ 4's Cycles). ``"none"``: the maps as they are.
     """
     if material_model not in MATERIAL_MODELS:
         raise ExportError(f"material_model must be one of {list(MATERIAL_MODELS)}, got {material_model!r}")
+    _check_compensation(compensation)
     if bits not in (8, 16):
         raise ExportError(f"bits must be 8 or 16, got {bits!r}")
     missing = [k for k in ("albedo", "f0", "roughness") if k not in maps]
@@ -784,14 +931,36 @@ def gltf_textures(maps: Mapping[str, Tensor], material_model: str = "metallic-ro
     rough = rough.clamp(0.0, 1.0)
     mask = mask.clamp(0.0, 1.0)
     one = torch.ones_like(rough)
+    layered = compensation != "none"
+    multi = compensation == "layering+multiscatter"
+
+    def span(x):
+        return {"min": round(x.min().item(), 6), "max": round(x.max().item(), 6)} if x.numel() else {}
+
     if material_model == "specular":
         base, metal, spec, use_spec = albedo, torch.zeros_like(rough), f0, True
         mr, mapping = None, {"rule": "metallic 0; specularColor = f0 (factor 25)"}
+        if layered:
+            base, factor = _layered(albedo, rough, f0.amax(-1, keepdim=True))
+        if multi:
+            divisor = multiscatter_factor(rough, f0)
+            spec = (f0 / divisor).to(f0.dtype)
     else:
-        mr = to_metallic_roughness(albedo, f0, levels=(1 << bits) - 1)
-        base, metal, spec = mr["base_color"], mr["metallic"], mr["specular_f0"]
+        target = albedo
+        if layered:
+            target, factor = _layered(albedo, rough, GLTF_DIELECTRIC_F0)
+        mr = to_metallic_roughness(target, f0, levels=(1 << bits) - 1)
         core_max = mr["f0_error_core"].abs().max().item() if mr["f0_error_core"].numel() else 0.0
         use_spec = core_max > SPECULAR_TOLERANCE
+        if layered and use_spec:  # with the extension, the dielectric layer's F0 is t: map again with it
+            target, factor = _layered(albedo, rough, mr["specular_f0"].amax(-1, keepdim=True))
+            mr = to_metallic_roughness(target, f0, levels=(1 << bits) - 1)
+            core_max = mr["f0_error_core"].abs().max().item() if mr["f0_error_core"].numel() else 0.0
+            use_spec = core_max > SPECULAR_TOLERANCE
+        base, metal, spec = mr["base_color"], mr["metallic"], mr["specular_f0"]
+        if multi:
+            divisor = 1.0 + metal * (multiscatter_factor(rough, base) - 1.0)
+            base = (base / divisor).to(base.dtype)
 
         def stats(e):
             return {"max": round(e.abs().max().item(), 6) if e.numel() else 0.0,
@@ -804,6 +973,12 @@ def gltf_textures(maps: Mapping[str, Tensor], material_model: str = "metallic-ro
             "f0_error_with_specular_extension": stats(mr["f0_error"]),
             "specular_extension": use_spec,
         }
+    mapping["compensation"] = {"mode": compensation}
+    if layered:
+        mapping["compensation"]["diffuse_factor"] = span(factor)
+        mapping["compensation"]["texels_clamped"] = int(((albedo.to(torch.float64) * factor) > 1).any(-1).sum())
+    if multi:
+        mapping["compensation"]["f0_divisor"] = span(divisor)
     images = {
         "baseColor": _png_bytes(torch.cat([base, mask], -1), bits, "srgb"),
         "metallicRoughness": _png_bytes(torch.cat([one, rough, metal], -1), bits, "linear"),
@@ -811,12 +986,13 @@ def gltf_textures(maps: Mapping[str, Tensor], material_model: str = "metallic-ro
     if use_spec:
         images["specularColor"] = _png_bytes(spec, bits, "srgb")
     return {"images": images, "specular": use_spec, "alpha_mask": bool((mask < 1).any()),
-            "doc": _gltf_doc(material_model, use_spec), "mapping": mapping, "mr": mr,
+            "doc": _gltf_doc(material_model, use_spec, compensation), "mapping": mapping, "mr": mr,
+            "compensation": compensation,
             "base_color": base, "metallic": metal, "roughness": rough, "mask": mask}
 
 
 def write_texture_sets(folder, maps: Mapping[str, Tensor], sets: Sequence[str] = TEXTURE_SETS, bits: int = 8,
-                       textures: dict | None = None) -> dict:
+                       textures: dict | None = None, compensation: str = "layering") -> dict:
     """Write the engines' texture sets of linear canonical maps into ``folder`` (created if missing).
 
     Always the canonical maps as linear float EXR (``albedo``, ``f0``, ``roughness``, ``mask``; Rec. 709
@@ -829,16 +1005,25 @@ def write_texture_sets(folder, maps: Mapping[str, Tensor], sets: Sequence[str] =
     - ``unity-hdrp``: ``unity_BaseColorMap.png`` (sRGB; A = mask), ``unity_MaskMap.png`` (linear;
       R = metallic, G = occlusion 1, B = detail mask 1, A = smoothness 1 − roughness).
 
-    Colour PNGs carry an sRGB chunk, data PNGs gAMA 1.0 (:func:`tag_png`). ``textures``: a result of
-    :func:`gltf_textures` with the metallic-roughness model to reuse. Returns ``{set: {role: file name}}``.
+    ``compensation`` applies to the ``gltf`` set only (the GLB's textures, :func:`gltf_textures`); the engines'
+    sets hold the uncompensated mapping. Colour PNGs carry an sRGB chunk, data PNGs gAMA 1.0 (:func:`tag_png`).
+    ``textures``: a result of :func:`gltf_textures` with the metallic-roughness model to reuse where its
+    compensation fits. Returns ``{set: {role: file name}}``.
     """
     folder = Path(folder)
     sets = tuple(sets)
     unknown = [s for s in sets if s not in TEXTURE_SETS]
     if unknown:
         raise ExportError(f"unknown texture set(s) {unknown}; choose from {list(TEXTURE_SETS)}")
-    if textures is None or textures.get("mr") is None:
-        textures = gltf_textures(maps, "metallic-roughness", bits)
+    _check_compensation(compensation)
+    done = {} if textures is None or textures.get("mr") is None else {textures["compensation"]: textures}
+
+    def textures_for(mode: str) -> dict:
+        if mode not in done:
+            done[mode] = gltf_textures(maps, "metallic-roughness", bits, mode)
+        return done[mode]
+
+    textures = textures_for(compensation if "gltf" in sets else "none")
     folder.mkdir(parents=True, exist_ok=True)
     written: dict = {"exr": {}}
     for k, img in (("albedo", maps["albedo"]), ("f0", maps["f0"]), ("roughness", textures["roughness"]),
@@ -852,6 +1037,9 @@ def write_texture_sets(folder, maps: Mapping[str, Tensor], sets: Sequence[str] =
                          "metallicRoughness": ("gltf_metallicRoughness.png", img["metallicRoughness"])}
         if "specularColor" in img:
             files["gltf"]["specularColor"] = ("gltf_specularColor.png", img["specularColor"])
+    if "unreal" in sets or "unity-hdrp" in sets:
+        textures = textures_for("none")
+        img = textures["images"]
     if "unreal" in sets:
         files["unreal"] = {"BaseColor": ("unreal_BaseColor.png", img["baseColor"]),
                            "ORM": ("unreal_ORM.png", img["metallicRoughness"])}  # same channels as glTF's
@@ -870,14 +1058,16 @@ def write_texture_sets(folder, maps: Mapping[str, Tensor], sets: Sequence[str] =
 
 
 def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor], *,
-              material_model: str = "metallic-roughness", bits: int = 8, textures: dict | None = None) -> dict:
+              material_model: str = "metallic-roughness", bits: int = 8, textures: dict | None = None,
+              compensation: str = "layering") -> dict:
     """Write ``meshes`` (UVs already in atlas space) as one GLB with one material over the atlas ``maps``.
 
     ``maps``: linear canonical albedo, f0, roughness, optional mask ``[H, W, C]``. The material follows
     :func:`gltf_textures` (default: glTF metallic-roughness, metals as metallic 1; KHR_materials_specular
-    only where a dielectric's f0 ≠ 0.04). Textures are PNGs of ``bits`` (8 or 16) bits per channel:
-    baseColor RGB sRGB + alpha linear (mask; ``alphaMode`` MASK when some mask < 1), metallicRoughness
-    linear (G = roughness, B = metallic), specularColor sRGB. Sampler: linear, mip-mapped, clamp to edge.
+    only where a dielectric's f0 ≠ 0.04; ``compensation`` as there, ignored when ``textures`` is given).
+    Textures are PNGs of ``bits`` (8 or 16) bits per channel: baseColor RGB sRGB + alpha linear (mask;
+    ``alphaMode`` MASK when some mask < 1), metallicRoughness linear (G = roughness, B = metallic),
+    specularColor sRGB. Sampler: linear, mip-mapped, clamp to edge.
     Geometry: the dataset's Z-up world is rotated to glTF's Y-up, (x, y, z) → (x, z, −y), normals too;
     glTF's UV origin is the top-left, so ``v_gltf = 1 − v``. Written atomically.
 
@@ -890,7 +1080,7 @@ def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor], *,
     if any(not isinstance(m, Mesh) for m in meshes):
         raise ExportError(f"{path}: meshes must be renderer.mesh.Mesh objects")
     if textures is None:
-        textures = gltf_textures(maps, material_model, bits)
+        textures = gltf_textures(maps, material_model, bits, compensation)
     images = [textures["images"]["baseColor"], textures["images"]["metallicRoughness"]]
     if textures["specular"]:
         images.append(textures["images"]["specularColor"])
@@ -966,7 +1156,8 @@ def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor], *,
             + struct.pack("<II", len(blob), 0x004E4942) + bytes(blob))
     imageio.atomic_write_bytes(path, data)
     return {"file": path.name, "up_axis": "Y", "frame": "(x, y, z) dataset -> (x, z, -y) glTF",
-            "bits": bits, "material_model": material_model, "material": textures["doc"],
+            "bits": bits, "material_model": material_model, "compensation": textures["compensation"],
+            "material": textures["doc"],
             "mapping": textures["mapping"]}
 
 
