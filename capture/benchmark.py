@@ -263,6 +263,8 @@ def plot_pareto(rows: list[dict], out_png) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from .plots import save_figure
+
     fig, ax = plt.subplots(figsize=(9, 6))
     for i, r in enumerate(rows):
         c = plt.cm.tab20(i % 20)
@@ -279,8 +281,7 @@ def plot_pareto(rows: list[dict], out_png) -> None:
     ax.set_title("Approximations of the papers: cost against error")
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(out_png, dpi=80)
-    plt.close(fig)
+    save_figure(fig, out_png, dpi=80)
 
 
 def run_approximation_benchmark(out: str | None = None, figure: str | None = None) -> str:
@@ -371,6 +372,8 @@ def plot_reconstruction_pareto(rows: list[dict], out_png, caption: str = "") -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from .plots import save_figure
+
     maps = ("albedo", "f0", "roughness")
     labels = list(dict.fromkeys(r["label"] for r in rows))
     rigs = list(dict.fromkeys(r["rig"] for r in rows))
@@ -397,8 +400,7 @@ def plot_reconstruction_pareto(rows: list[dict], out_png, caption: str = "") -> 
                  + "\nRMSE on texels where the map is observable (filled) and on all observed texels (open)",
                  fontsize=9)
     fig.tight_layout(rect=(0, 0.12, 1, 0.97))
-    fig.savefig(out_png, dpi=90)
-    plt.close(fig)
+    save_figure(fig, out_png, dpi=90)
 
 
 #: Sweeps of the reconstruction benchmark: (label, SyntheticConfig field, values) on the default scene, flash rig.

@@ -49,6 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from materials import KnownParams
+from materials.params import CANONICAL, preview_transfer
 from materials.roughness import half_max_angle, roughness_to_alpha
 from renderer.gbuffer import check_psf_sigma
 
@@ -179,7 +180,7 @@ def _solve(model, obs: Observations, solver: str, loss: str, options: dict, prog
 
 #: Parameters fitted as one value for the whole object by default (the issue's "coat η and roughness as
 #: known or fitted scalars": one coat over a whole object).
-SCALARS = ("coat_ior", "coat_roughness")
+SCALARS = tuple(p.name for p in CANONICAL.values() if p.shared)
 
 
 def _fit_scalars(model, fit: FitResult, names) -> tuple[dict[str, list[float]], dict]:
@@ -901,7 +902,7 @@ def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, repo
             if math.isfinite(float(m.max())) and float(m.max()) > 1:
                 png = png / float(png.max())
             write_png(tmp / f"{k}.png", png.float().clamp(0, 1),
-                      transfer="srgb" if k == "albedo" or k == "f0" else "linear")
+                      transfer=preview_transfer(k))
             if k in known_maps:
                 continue
             write_exr(tmp / f"confidence_{k}.exr", fit.confidence[k].float(), allow_nonfinite=True)

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from materials.model import Model
+from materials.params import CANONICAL
 
 from ..observations import Observations
 from .layout import ACC, MAX_STEP, Layout, SolverError
@@ -24,12 +25,9 @@ __all__ = ["PRIOR_UNIT", "JOINT_ATTEMPTS", "refine_joint"]
 
 
 #: Units of the joint refinement's edge-preserving prior where they differ from the observability thresholds
-#: (:func:`std_threshold`). The albedo is a texture, whose neighbours differ by design: in units of 0.3 (a third
-#: of its range) the prior smooths differences below 0.09 and charges larger ones linearly. Measured, all-texel
-#: albedo RMSE with the unit 0.01 / 0.03 / 0.1 / 0.3 / 1 / 3 (and with no albedo prior): default scene 0.0106 /
-#: 0.0097 / 0.0090 / 0.0089 / 0.0102 / 0.0116 (0.0161); the same with 64² maps 0.0147 / 0.0116 / 0.0085 / 0.0063 /
-#: 0.0062 / 0.0061 (0.0084); docs/reconstruction.md, "the albedo joins the joint prior", for the other scenes.
-PRIOR_UNIT = {"albedo": 0.3}
+#: (:func:`std_threshold`): each parameter's ``ParamSpec.prior_unit`` (materials/params.py, with the measurement
+#: that chose the albedo's).
+PRIOR_UNIT = {p.name: p.prior_unit for p in CANONICAL.values() if p.prior_unit is not None}
 
 
 class _SharingPrior:

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from materials.atlas import pull_push  # the one pull-push fill; re-exported by capture.fit
 from materials.model import Model
-from materials.params import ParamSpec
+from materials.params import CANONICAL, ParamSpec
 
 from ..observations import Observations
 from .layout import ACC, FitResult, Layout
@@ -33,9 +33,9 @@ __all__ = ["OBSERVABLE_STD", "RESOLVED_SHARE", "ANCHOR_MIN_FRACTION", "ANCHOR_LO
 
 
 #: Default thresholds on the marginal posterior standard deviation (canonical units) below which a
-#: parameter counts as observable in a texel (see :func:`posterior_std`); other names: 0.02 × range (≤ 1).
-OBSERVABLE_STD = {"albedo": 0.01, "f0": 0.01, "specular": 0.01, "roughness": 0.02, "coat_roughness": 0.02,
-                  "mix": 0.02, "mask": 0.02, "ior": 0.05, "coat_ior": 0.05, "absorption": 0.05}
+#: parameter counts as observable in a texel (see :func:`posterior_std`): each parameter's
+#: ``ParamSpec.threshold`` (materials/params.py, where they are declared with their reasons).
+OBSERVABLE_STD = {p.name: p.threshold for p in CANONICAL.values()}
 
 
 def std_threshold(spec: ParamSpec, observable_std: float | Mapping[str, float] | None = None) -> float:
@@ -47,7 +47,7 @@ def std_threshold(spec: ParamSpec, observable_std: float | Mapping[str, float] |
         table.update(observable_std)
     if spec.name in table:
         return float(table[spec.name])
-    return 0.02 * min(spec.high - spec.low, 1.0)
+    return spec.threshold
 
 
 def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor, groups, *, loss: str = "l2",
