@@ -137,7 +137,7 @@ class ParamSpec:
 #: its range) the prior smooths differences below 0.09 and charges larger ones linearly. Measured all-texel
 #: albedo RMSE with the unit 0.01 / 0.03 / 0.1 / 0.3 / 1 / 3 (and no albedo prior): default scene 0.0106 /
 #: 0.0097 / 0.0090 / 0.0089 / 0.0102 / 0.0116 (0.0161); with 64² maps 0.0147 / 0.0116 / 0.0085 / 0.0063 /
-#: 0.0062 / 0.0061 (0.0084); docs/reconstruction.md, "the albedo joins the joint prior".
+#: 0.0062 / 0.0061 (0.0084); docs/log.md, "the albedo joins the joint prior".
 #: ``diffuse_only``: f0 = 0 and roughness = 1 export a diffuse-only model as no specular reflection.
 #: ``plot``: the lobe figures show a mid-rough dielectric (r = 0.4), a visible coat (absorption 0.05,
 #: coat roughness 0.2) and Nielsen's k_s = 0.2, so that every lobe is visible next to the diffuse.

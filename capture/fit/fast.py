@@ -40,7 +40,7 @@ __all__ = ["ANCHOR_RETRY_FACTOR", "MISFIT_RETRY", "FOOTPRINT_STEPS", "FOOTPRINT_
 #: materials seeded from so few are a guess, and when the joint refinement they start then misses the photos by more
 #: than ``MISFIT_RETRY`` × their noise (:func:`noise_floor`), the sharing and the refinement run again from the anchors
 #: at ``ANCHOR_RETRY_FACTOR`` × the thresholds, and the fit with the lower data cost is kept (``info["share_retry"]``).
-#: Measured (docs/reconstruction.md, "the layered fit 58 → 42 s"): the default-size layered scene with 3 000 e⁻
+#: Measured (docs/log.md, "the layered fit 58 → 42 s"): the default-size layered scene with 3 000 e⁻
 #: shot noise, 18 anchors of 46 264 at × 10, data cost 36 × its noise floor (worst view 35.6 dB) → 393 anchors
 #: at × 30, 0.25 × the floor (62.5 dB); the noise-free one misses by 4.7 × (the floor of the 1 % noise model) and
 #: keeps its fit.

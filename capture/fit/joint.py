@@ -73,7 +73,7 @@ class _SharingPrior:
         # bridges: observed texels two apart along a row or column with an unobserved one between them, as flat
         # index pairs [B] (few: 1 212 on the default scene, against 101 122 edges). Near a UV sphere's poles texels
         # are narrower than a pixel and some are read by no sample; without the bridges such a texel cut the chain
-        # and its observed neighbour was tied to one side only (default scene, docs/reconstruction.md "bridges
+        # and its observed neighbour was tied to one side only (default scene, docs/log.md "bridges
         # across unobserved texels": all-texel albedo 0.0088 → 0.0062)
         flat = torch.arange(H * W, device=dev).reshape(H, W)
         row = ok[:, :-2] & ~ok[:, 1:-1] & ok[:, 2:]
@@ -282,7 +282,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     default scene, 6 steps × 50 CG iterations, f0 0.0159 → 0.0326 (gold and the smooth dielectric away from the
     highlights). With it (``anchor_weight`` 0.03, solve_fast's default) the same steps give 0.0087 / 0.0139 /
     0.0510, and 6 × 30 — the default — 0.0088 / 0.0134 / 0.0515 against 0.0089 / 0.0159 / 0.0531 for 3 × 25
-    without the anchor; docs/reconstruction.md, "the sharing's proposal as a prior", for the other scenes and weights.
+    without the anchor; docs/log.md, "the sharing's proposal as a prior", for the other scenes and weights.
 
     Returns:
         ``(theta [T, P], info)`` with the cost history, accepted steps and time.

@@ -57,7 +57,7 @@ class FitOptions:
             ``pool_block``; 0 = off, the default): tiles of non-anchor texels with no anchor nearby fit a material
             of their own on their pooled samples and propose it when it beats every candidate. For materials that
             give no anchor — a rough dielectric under fixed lights: all-texel roughness 0.109 → 0.048 there, but
-            the default (flash) scene's f0 0.0126 → 0.0294 (docs/reconstruction.md, "second basins are local minima").
+            the default (flash) scene's f0 0.0126 → 0.0294 (docs/log.md, "second basins are local minima").
         anchor_weight: weight of the joint refinement's tie of each texel's material parameters to the sharing's
             proposal (:func:`refine_joint`; relative to the neighbour prior's data scale; 0 = off, only with the
             sharing). 0.03: the best of 0.01 / 0.03 / 0.1 on the default scene (6 × 50 steps: f0 0.0171 / 0.0139 /
@@ -74,7 +74,7 @@ class FitOptions:
             and the joint refinement adds the edge-preserving prior of weight ``sharing`` on every parameter
             between neighbours (:func:`refine_joint`). None = on whenever the joint refinement runs (bilinear
             sampling); it then replaces ``fill_before_joint``. Measured on the default scene (docs/
-            reconstruction.md, 3 joint steps): RMSE on all observed texels albedo / f0 / roughness 0.0089 /
+            log.md, "3 joint steps"): RMSE on all observed texels albedo / f0 / roughness 0.0089 /
             0.0159 / 0.0531 against 0.0805 / 0.1963 / 0.1892 without, on observable texels 0.0005 / 0.0017 /
             0.0018 against 0.0016 / 0.0107 / 0.0146;
             ``candidates`` 8 against 10: f0 0.021 → 0.016 here, 0.054 → 0.019 with fixed lights.
@@ -83,7 +83,7 @@ class FitOptions:
             their material (:func:`capture.fit.sharing.unmatched_texels`) keep their own fit, the refinement runs
             again and the lower data cost wins (``info["sharing_fallback"]``). Layered scene of 128 px, 64² maps,
             coat given: data cost 0.024 → 0.0009 (per-texel fit 0.0049); with the coat fitted, worst / mean view
-            27.4 / 34.2 dB without it → 40.1 / 46.5 dB (docs/reconstruction.md, "candidate materials the photos
+            27.4 / 34.2 dB without it → 40.1 / 46.5 dB (docs/log.md, "candidate materials the photos
             do not need"); never triggered on the GGX + Lambert scenes there. A second one: seeded from scarce
             anchors, materials whose refinement misses
             the photos by more than their noise allows are seeded again from more texels, and the photos judge

@@ -1,7 +1,7 @@
 """Reflectance sharing: a few candidate materials for the specular parameters, per-texel albedo.
 
 Where a texel never shows a highlight its own samples cannot tell f0 from roughness from albedo
-(docs/reconstruction.md, "Why the per-texel fit cannot reach the all-texel targets"); real objects,
+(docs/log.md, "Why the per-texel fit cannot reach the all-texel targets"); real objects,
 however, are made of a few materials. Following Lensch et al. 2003 (basis materials fitted to
 clustered lumitexels) and Nam et al. 2018 (a handful of specular materials with per-point diffuse
 albedo, for exactly the flash-light setting), :func:`share_materials`
@@ -27,7 +27,7 @@ albedo, for exactly the flash-light setting), :func:`share_materials`
 4. refits each candidate's shared parameters on all samples of its texels (Levenberg–Marquardt per
    candidate, albedo held); steps 2–4 run ``rounds`` times.
 
-Anchors keep their own fit. Measured on the default scene (docs/reconstruction.md, "Reflectance
+Anchors keep their own fit. Measured on the default scene (docs/log.md, "Reflectance
 sharing" and "speed, 3 joint steps"): RMSE on all observed texels albedo / f0 / roughness 0.0805 / 0.1963 / 0.1892
 → 0.0089 / 0.0159 / 0.0531 after the joint refinement (0.0161 / 0.0159 / 0.0532 without the albedo in its
 prior); this stage takes ~5 s of the 20–24 (2 threads).
@@ -63,7 +63,7 @@ __all__ = ["share_materials", "unmatched_texels", "kmeans_pp", "pooled_materials
 
 #: χ² evidence (summed over the texels that prefer it, :func:`_supported`) below which a candidate material is
 #: dropped: 10 texels' worth of the assignment's evidence margin. Measured: duplicates and border mixtures 0–82,
-#: real materials ≥ 502 (docs/reconstruction.md, "candidate materials the photos do not need").
+#: real materials ≥ 502 (docs/log.md, "candidate materials the photos do not need").
 MIN_EVIDENCE = 100.0
 
 
@@ -76,7 +76,7 @@ def kmeans_pp(x: Tensor, k: int, generator: torch.Generator | None = None, itera
     :class:`kornia.contrib.KMeans` started from those seeds; ``restarts`` draws, keeping the centres with
     the least within-cluster sum of squares (as scikit-learn's ``n_init``). One draw left the default scene's
     outcome to chance: the k-means seed alone moved its all-texel f0 / roughness over 0.013–0.030 /
-    0.049–0.074 (docs/reconstruction.md, "second basins are local minima").
+    0.049–0.074 (docs/log.md, "second basins are local minima").
     """
     if x.dim() != 2 or x.shape[0] == 0:
         raise ValueError(f"kmeans_pp: x must be [N, D] with N ≥ 1, got {tuple(x.shape)}")
@@ -395,7 +395,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
             :data:`MIN_EVIDENCE`); 0 = keep every candidate. Measured (default scene's rig, RMSE on all observed
             texels albedo / f0 / roughness): 3 materials 0.0120 / 0.0834 / 0.0858 → 0.0081 / 0.0108 / 0.0160,
             2 materials 0.0049 / 0.0025 / 0.0241 → 0.0044 / 0.0023 / 0.0112, 6 materials unchanged (every
-            candidate needed); docs/reconstruction.md, "candidate materials the photos do not need", for the
+            candidate needed); docs/log.md, "candidate materials the photos do not need", for the
             small scenes.
         evidence: χ² margin (noise model ``noise``) by which the best candidate must beat the second
             best before a texel is decided at a scale; candidates its own samples put further than
@@ -406,7 +406,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
             texels, pooled, fit a material of their own better than every candidate by ``pool_evidence`` χ²
             (:func:`pooled_materials`, :func:`_propose_pooled`) add up to ``pool_candidates`` materials, which
             the pruning then keeps or drops like the others. For a material that gives no anchor (a rough
-            dielectric under fixed lights). Measured (docs/reconstruction.md, "second basins are local minima";
+            dielectric under fixed lights). Measured (docs/log.md, "second basins are local minima";
             RMSE on all observed texels albedo / f0 / roughness, off → 4): fixed-light rig 0.0104 / 0.0130 /
             0.1089 → 0.0093 / 0.0119 / 0.0481, shot noise 0.0245 / 0.1381 / 0.1589 → 0.0244 / 0.1035 / 0.1524,
             but the default scene 0.0062 / 0.0126 / 0.0510 → 0.0082 / 0.0294 / 0.0617 — hence off by default.
@@ -614,7 +614,7 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
     iterations work on the samples of the materials still moving only. Measured (default scene, 2 threads):
     every material of the noise-free scenes settles within 2–3 iterations (relative change < 1e-6 after
     the second), one of the shot-noise scene's still drops 2 % at the fourth. Sharing stage 5.2 → 3.5 s on
-    the default scene, 5.0 → 4.3 s with shot noise, maps unchanged to 4 decimals (docs/reconstruction.md,
+    the default scene, 5.0 → 4.3 s with shot noise, maps unchanged to 4 decimals (docs/log.md,
     "k-means restarts and reverse-mode Jacobians")."""
     K = mat.shape[0]
     Ps = len(scols)

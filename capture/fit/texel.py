@@ -387,7 +387,7 @@ def _grid_search(model: Model, layout: Layout, obs: Observations, theta: Tensor,
 #: until the 14th) and the layered 128-px scene (1e-2–5e-1 for 20 iterations) run all 10, as before. A fixed 5 broke
 #: the layered fallback test scene, which keeps dropping fast; 40 with this rule let the layered scene run
 #: 33 (determined-at-the-truth 0.149 / 0.105 / 0.078 / 0.153 → 0.094 / 0.088 / 0.077 / 0.136 but all-texel f0 0.202
-#: → 0.217 and more texels called observable at a wrong albedo; docs/reconstruction.md, "errors on what the photos
+#: → 0.217 and more texels called observable at a wrong albedo; docs/log.md, "errors on what the photos
 #: determine at the truth") — not the default.
 BILINEAR_LM_TOL = 1e-3
 BILINEAR_LM_MIN = 5
