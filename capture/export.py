@@ -50,6 +50,7 @@ from torch import Tensor
 
 from materials import atlas as A
 from materials.microfacet import smith_g1_ggx, smith_g2_correlated_ggx
+from materials.params import CANONICAL, preview_transfer
 from materials.roughness import roughness_to_alpha
 from renderer import imageio
 from renderer.mesh import Mesh, MeshError, load_mesh, save_mesh
@@ -65,11 +66,12 @@ __all__ = [
 
 #: Version of the atlas folder format (``atlas.json`` → ``format``).
 ATLAS_FORMAT = "shadecap-schuler-atlas/1"
-#: Canonical maps of a reconstruction folder and their channel counts.
-MAP_CHANNELS = {"albedo": 3, "f0": 3, "roughness": 1, "absorption": 3, "mask": 1, "coverage": 1}
+#: Canonical maps of a reconstruction folder and their channel counts (the per-texel parameters the ParamSpecs
+#: export, and the coverage).
+MAP_CHANNELS = {**{p.name: p.channels for p in CANONICAL.values() if p.export and not p.shared}, "coverage": 1}
 REQUIRED = ("albedo",)
 #: Values of maps a diffuse-only model (e.g. Lambert) does not have: no specular reflection.
-DIFFUSE_ONLY_DEFAULTS = {"f0": 0.0, "roughness": 1.0}
+DIFFUSE_ONLY_DEFAULTS = {p.name: p.diffuse_only for p in CANONICAL.values() if p.diffuse_only is not None}
 #: F0 of glTF's dielectric (ior 1.5): ((1.5 − 1)/(1.5 + 1))².
 GLTF_DIELECTRIC_F0 = 0.04
 #: What the GLB's textures compensate of a viewer's BRDF (docs/export.md, "Compensation"): nothing, the diffuse
@@ -79,8 +81,8 @@ COMPENSATIONS = ("none", "layering", "layering+multiscatter")
 MATERIAL_MODELS = ("metallic-roughness", "specular")
 #: Engine texture sets written into ``textures/`` (see docs/export.md).
 TEXTURE_SETS = ("gltf", "unreal", "unity-hdrp")
-_RANGES = {"albedo": (0.0, 1.0), "f0": (0.0, 1.0), "roughness": (0.0, 1.0), "mask": (0.0, 1.0),
-           "coverage": (0.0, 1.0), "absorption": (0.0, math.inf)}
+_RANGES = {**{p.name: (p.low, p.high) for p in CANONICAL.values() if p.export and not p.shared},
+           "coverage": (0.0, 1.0)}
 
 
 class ExportError(ValueError):
@@ -244,7 +246,7 @@ def write_maps(maps: Mapping[str, Tensor], out, previews: bool = True, half: boo
         imageio.write_exr(out / f"{k}.exr", x, half=half, chromaticities="rec709")
         written.append(out / f"{k}.exr")
         if previews:
-            transfer = "srgb" if k in ("albedo", "f0") else "linear"
+            transfer = preview_transfer(k)
             if k == "absorption" and x.max() > 1:
                 x = x / x.max()
             _write_png(out / f"{k}.png", x, transfer=transfer)
