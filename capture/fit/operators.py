@@ -159,11 +159,17 @@ class PixelOperator:
             return self.predict(model, layout, canon), self._affine[2]
         P = canon.shape[1]
         pred_s, Js = jacobian(model, layout, self.fp.samples, self.gather_op @ canon, groups, canonical=True)
-        Jf = Js.reshape(Js.shape[0], 3 * P)
-        C = sum(op @ Jf for op in self.corner_ops).reshape(self.E, 3, P)
-        del Js, Jf
+        # only the (channel, parameter) pairs some sample depends on go through the corner sums (GGX + Lambert:
+        # 9 of 21, the albedo and f0 act on their own channel)
+        mask = (Js != 0).any(0)
+        cs, ps = torch.nonzero(mask, as_tuple=True)
+        Jc = Js[:, cs, ps]
+        del Js
+        C = torch.zeros(self.E, 3, P, dtype=ACC, device=canon.device)
+        C[:, cs, ps] = sum(op @ Jc for op in self.corner_ops)
+        del Jc
         pred = self.group_op @ pred_s
-        J = self._jacobian(C)
+        J = self._jacobian(C, mask)
         if self._affine_checked is None:
             self._affine_checked = True
             free = sorted({c for cs in groups for c in cs}) == list(range(P))
@@ -180,12 +186,12 @@ class PixelOperator:
                     self._affine = (canon.clone(), pred, J)
         return pred, J
 
-    def _jacobian(self, C: Tensor) -> PixelJacobian:
+    def _jacobian(self, C: Tensor, mask: Tensor) -> PixelJacobian:
         """The sparse ``[3R, P·T]`` matrix of the entries' blocks ``C [E, 3, P]`` and its transpose, keeping only
-        the (channel, parameter) pairs some entry depends on (Lambert's albedo: the diagonal, a third of the
-        block). The sorting permutations depend on that pattern only and are kept across linearisations."""
+        the (channel, parameter) pairs of ``mask [3, P]`` (the pairs some sample depends on; Lambert's albedo: the
+        diagonal, a third of the block). The sorting permutations depend on that pattern only and are kept across
+        linearisations."""
         E, _, P = C.shape
-        mask = (C != 0).any(0)
         key = tuple(mask.reshape(-1).tolist())
         if self._pattern is None or self._pattern[0] != key:
             cs, ps = torch.nonzero(mask, as_tuple=True)
