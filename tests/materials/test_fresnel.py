@@ -168,6 +168,18 @@ def test_conductor_float32_at_grazing_incidence_near_unit_index():
         assert abs(f32 - f64) < 2e-6, (eta, k, cos, f32, f64)
 
 
+def test_dielectric_float32_at_grazing_incidence_near_unit_index():
+    # found by the property test below: cos²θ_t as 1 − (1 − c²)/η² lost c² in float32 (η 1.000001, c 1e-4: 0.7482
+    # against 0.7487); as ((η − 1)(η + 1) + c²)/η² float32 stays within 2e-6 of float64, which matches the
+    # complex-index reference with κ = 0
+    for eta, cos in [(1.0000009536743164, 9.999999747378752e-05), (1.0001, 1e-5), (0.9999, 1e-4), (1.5, 1e-4)]:
+        f32 = fr.fresnel_dielectric(torch.tensor([[eta]]), torch.tensor([[cos]])).item()
+        f64 = fr.fresnel_dielectric(t64(eta), c64(cos)).item()
+        ref = complex_fresnel(eta, 0.0, torch.tensor([[cos]], dtype=D64)).item()
+        assert f64 == pytest.approx(ref, abs=1e-9)
+        assert abs(f32 - f64) < 2e-6, (eta, cos, f32, f64)
+
+
 def test_spherical_gaussian_beats_schlick_for_glass():
     c = torch.linspace(0.0, 1.0, 201, dtype=D64).unsqueeze(-1)
     exact = fr.fresnel_dielectric(t64(1.5), c)
