@@ -419,7 +419,7 @@ def reconstruction_sweeps(workdir: str | None = None, threads: int | None = None
     from pathlib import Path
 
     from .scaling import growth_exponent
-    from .synthetic import default_scene, make_synthetic
+    from .synth import default_scene, make_synthetic
 
     base = base or default_scene()
     lines = ["| axis | value | s (solve s) | albedo RMSE obs. / obsv. | f0 RMSE obs. / obsv. | roughness RMSE obs. / "
@@ -452,9 +452,9 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
     """Time against error of the reconstruction (markdown), written into ``out``'s
     ``reconstruction`` section when given.
 
-    ``scene="default"``: :func:`capture.synthetic.default_scene` (16 views of 256², 256² maps,
+    ``scene="default"``: :func:`capture.synth.default_scene` (16 views of 256², 256² maps,
     GGX + Lambert, 2 point lights, bilinear, noise-free), once per light rig in ``rigs``;
-    ``scene="small"``: :func:`capture.synthetic.small_scene` (96 px, 6 views, 32² maps). Rows: the fast
+    ``scene="small"``: :func:`capture.synth.small_scene` (96 px, 6 views, 32² maps). Rows: the fast
     path (default options), the fast path without reflectance sharing, without the joint bilinear
     refinement, with a coarse grid and with pooled proposals flipped from their default (on for static lights,
     :func:`capture.reconstruct.static_lights`) (``fast_variants``), and Adam for each
@@ -470,7 +470,7 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
 
     from .reconstruct import static_lights
     from .report import replace_section
-    from .synthetic import default_scene, make_synthetic, small_scene
+    from .synth import default_scene, make_synthetic, small_scene
 
     rows = []
     with tempfile.TemporaryDirectory(dir=workdir) as d:

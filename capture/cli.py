@@ -50,7 +50,7 @@ def _cmd_models(args) -> int:
 def _cmd_synth(args) -> int:
     from capture.outputs import check_output
     from capture.photo import PhotoModel
-    from capture.synthetic import BUILTIN_MESHES, default_scene, make_synthetic, small_scene
+    from capture.synth import BUILTIN_MESHES, default_scene, make_synthetic, small_scene
 
     inputs = {Path(args.mesh): "the mesh file (--mesh)"} if args.mesh and args.mesh not in BUILTIN_MESHES else {}
     check_output(args.out, inputs, force=args.overwrite, force_flag="--overwrite")
@@ -272,7 +272,7 @@ def _cmd_demo(args) -> int:
     from capture.export import export_atlas_dirs
     from capture.outputs import check_output
     from capture.reconstruct import reconstruct
-    from capture.synthetic import default_scene, make_synthetic, small_scene
+    from capture.synth import default_scene, make_synthetic, small_scene
 
     out = Path(args.out)
     check_output(out.absolute(), force=args.force)  # absolute: '--out .' names a folder the demo writes into

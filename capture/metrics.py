@@ -249,7 +249,7 @@ def visible_lobe_texels(maps: Mapping[str, Tensor], min_ratio: float = VISIBLE_L
 def highlight_texels(obs, roughness: Tensor, min_angle_deg: float = 1.0) -> Tensor:
     """``[H, W]`` bool: texels seen inside a highlight — some (sample, light) pair with the half vector within the
     half-maximum angle of the GGX lobe of the texel's roughness ``[H, W, 1]`` (at least ``min_angle_deg``) of the
-    normal, the criterion of :func:`capture.synthetic.highlight_coverage`."""
+    normal, the criterion of :func:`capture.synth.highlight_coverage`."""
     from materials.roughness import half_max_angle
 
     H, W = obs.map_size

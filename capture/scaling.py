@@ -1,7 +1,7 @@
 """Scaling of the forward pipeline (issue 6): how time and memory grow with views, image resolution,
 texture resolution and lights, with the fitted growth exponent (time ∝ x^k).
 
-Each configuration builds a synthetic scene (capture.synthetic) and times the stages the
+Each configuration builds a synthetic scene (capture.synth) and times the stages the
 reconstruction repeats or pays once: G-buffers (once per view), ``prepare`` (once per view: per-light
 Angles, shadows), and one differentiable ``shade`` forward + backward of every view (what every
 solver iteration costs).
@@ -19,7 +19,7 @@ import torch
 from renderer.gbuffer import render_gbuffer
 from renderer.shading import prepare, shade
 
-from .synthetic import build_scene, small_scene
+from .synth import build_scene, small_scene
 
 
 def _peak_rss_mb() -> float:

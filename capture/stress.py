@@ -173,7 +173,7 @@ def _stress_config(field: str, level):
     from dataclasses import replace
 
     from .photo import PhotoModel
-    from .synthetic import small_scene
+    from .synth import small_scene
 
     base = small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6)
     if field == "full_well":
@@ -208,7 +208,7 @@ def reconstruction_stress(workdir, scenarios=STRESS_SCENARIOS) -> list[dict]:
     from renderer.imageio import read_exr
 
     from .reconstruct import reconstruct
-    from .synthetic import make_synthetic
+    from .synth import make_synthetic
 
     workdir = Path(workdir)
     rows = []

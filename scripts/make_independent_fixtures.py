@@ -6,7 +6,7 @@
     python scripts/make_independent_fixtures.py --out /tmp/x --only torus-lambert --spp 64
 
 The scenes (mesh, cameras, lights, ground-truth maps) come from shadecap's own scene builder
-(:func:`capture.synthetic.build_scene`); only the photos come from Mitsuba 3 (``scalar_rgb``,
+(:func:`capture.synth.build_scene`); only the photos come from Mitsuba 3 (``scalar_rgb``,
 pure CPU). Each scene is written with :func:`capture.dataset.write_dataset` (half-float linear
 EXR photos, ``gt/`` maps and the matching shadecap model spec), so ``shadecap reconstruct`` reads
 it like any other dataset. The conventions mapped between the two renderers, and the measured
@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from capture.dataset import GroundTruth, model_spec, write_dataset  # noqa: E402
-from capture.synthetic import REGION_NAMES, Scene, SyntheticConfig, build_scene  # noqa: E402
+from capture.synth import REGION_NAMES, Scene, SyntheticConfig, build_scene  # noqa: E402
 from materials.roughness import roughness_to_alpha  # noqa: E402
 from renderer.camera import Camera  # noqa: E402
 from renderer.lights import PointLight  # noqa: E402

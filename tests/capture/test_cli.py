@@ -68,7 +68,7 @@ def test_pooled_zero_on_the_command_line_turns_the_static_light_default_off(tmp_
     # `--pooled 0` must reach reconstruct as pooled=0 (off), not be dropped as falsy and become the rig's default
     import json
 
-    from capture.synthetic import make_synthetic, small_scene
+    from capture.synth import make_synthetic, small_scene
 
     make_synthetic(small_scene("ggx-lambert", image_size=32, texture_size=8, n_views=3, light_rig="fixed"),
                    tmp_path / "d")
@@ -85,7 +85,7 @@ def test_holdout_views_on_the_command_line(tmp_path, capsys):
     import json
 
     from capture.cli import parse_views
-    from capture.synthetic import make_synthetic, small_scene
+    from capture.synth import make_synthetic, small_scene
 
     assert parse_views("3,7") == [3, 7] and parse_views("4") == [4]
     with pytest.raises(argparse.ArgumentTypeError, match="separated by commas"):
@@ -116,7 +116,7 @@ def test_the_scripts_are_the_commands_under_their_own_name(tmp_path, capsys):
     import json
 
     from capture.cli import COMMANDS, build_parser, command_parser
-    from capture.synthetic import make_synthetic, small_scene
+    from capture.synth import make_synthetic, small_scene
 
     for script, command in (("reconstruct", "reconstruct"), ("export_atlas", "export-atlas"),
                             ("make_synthetic", "synth")):

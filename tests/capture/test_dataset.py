@@ -24,7 +24,7 @@ from capture.dataset import (
     write_dataset,
 )
 from capture.photo import PhotoModel, quantize_srgb
-from capture.synthetic import build_scene, make_synthetic, small_scene
+from capture.synth import build_scene, make_synthetic, small_scene
 from renderer.camera import Camera, look_at
 from renderer.gbuffer import render_gbuffer
 from renderer.imageio import read_exr, read_png, write_exr, write_png

@@ -11,7 +11,7 @@ from capture.fit.layout import param_groups
 from capture.fit.operators import PixelOperator
 from capture.footprint import FOOTPRINT_MAX, FOOTPRINT_SPACING, footprint_counts, observe_footprints, saving
 from capture.observations import observe_views
-from capture.synthetic import build_scene, render_scene, small_scene
+from capture.synth import build_scene, render_scene, small_scene
 from renderer.camera import look_at
 from renderer.gbuffer import render_gbuffer
 from renderer.mesh import plane
@@ -157,7 +157,7 @@ def test_gaussian_psf_in_the_pixel_filter_explains_blurred_photos(tmp_path):
     well-lit texels 0.052 against 0.070."""
     from capture.dataset import load_dataset
     from capture.reconstruct import reconstruct
-    from capture.synthetic import make_synthetic
+    from capture.synth import make_synthetic
 
     cfg = small_scene("lambert", image_size=64, texture_size=32, n_views=4, psf_sigma=0.7)
     ds = make_synthetic(cfg, tmp_path / "ds")
@@ -180,7 +180,7 @@ def test_psf_sigma_is_validated_where_users_give_it(tmp_path):
 
     from capture.dataset import DatasetError, load_dataset
     from capture.reconstruct import ReconstructionError, reconstruct
-    from capture.synthetic import SyntheticError, make_synthetic
+    from capture.synth import SyntheticError, make_synthetic
 
     with pytest.raises(SyntheticError, match="supersample"):
         small_scene("lambert", psf_sigma=0.5, supersample=1)

@@ -26,7 +26,7 @@ from capture.importers import (
     read_colmap_model,
 )
 from capture.observations import observe_views
-from capture.synthetic import build_scene, render_scene, small_scene
+from capture.synth import build_scene, render_scene, small_scene
 from renderer.camera import Camera
 from renderer.gbuffer import render_gbuffer
 from renderer.imageio import encode, read_exr, write_exr, write_png

@@ -7,8 +7,8 @@ import torch
 
 import materials
 import materials.measured  # noqa: F401  registers "measured"
-from capture import measured_scene as M
 from capture.dataset import load_dataset
+from capture.synth import measured as M
 from renderer.shading import shade
 
 pytestmark = pytest.mark.nbrdf
@@ -89,8 +89,8 @@ def test_dataset_has_no_gt_maps_and_records_the_truth_in_meta(tmp_path):
 
 
 def test_geometry_matches_capture_synthetic():
-    """Same cameras and lights as capture.synthetic builds for the same fields."""
-    from capture.synthetic import build_cameras, build_lights, build_mesh, small_scene
+    """Same cameras and lights as capture.synth builds for the same fields."""
+    from capture.synth import build_cameras, build_lights, build_mesh, small_scene
 
     cfg = M.measured_scene()
     syn = small_scene("lambert", image_size=96, texture_size=64, n_views=12)

@@ -15,7 +15,7 @@ import torch
 
 from capture.cli import main
 from capture.outputs import OutputError, OutputWarning, atomic_folder, check_output, json_text, na_floats, na_text
-from capture.synthetic import make_synthetic, small_scene
+from capture.synth import make_synthetic, small_scene
 from renderer.imageio import read_exr, read_png, write_exr
 
 
@@ -86,7 +86,7 @@ def test_no_command_writes_over_into_or_around_its_inputs(inputs):
 def test_an_unwritable_output_folder_is_refused_before_any_work(inputs, tmp_path, monkeypatch):
     # a read-only parent failed with an OSError traceback after the whole solve; now the probe refuses it up front
     import capture.export
-    import capture.synthetic
+    import capture.synth.scenes
     import renderer.gbuffer
 
     locked = tmp_path / "locked"
@@ -104,7 +104,7 @@ def test_an_unwritable_output_folder_is_refused_before_any_work(inputs, tmp_path
     monkeypatch.setattr(os, "mkdir", mkdir)
     monkeypatch.setattr(renderer.gbuffer, "render_gbuffer", no_work)
     monkeypatch.setattr(capture.export, "load_reconstruction", no_work)
-    monkeypatch.setattr(capture.synthetic, "build_scene", no_work)
+    monkeypatch.setattr(capture.synth.scenes, "build_scene", no_work)
     for argv in (["reconstruct", inputs / "ds", "--model", "lambert"], ["export-atlas", inputs / "rec"],
                  ["synth", "--config", "small"], ["demo", "--small"]):
         rc, err = _run([*argv, "--out", locked / "out"])

@@ -12,7 +12,7 @@ from capture.cli import main
 from capture.dataset import load_dataset
 from capture.photo import PhotoModel
 from capture.photometric import CalibrationError, HDRWarning, UVRegion, calibrate_lights, merge_hdr
-from capture.synthetic import make_synthetic, small_scene
+from capture.synth import make_synthetic, small_scene
 from renderer.imageio import encode, write_exr, write_png
 
 #: the unknown factors the declared intensities are off by, per light index (red-ish first light)

@@ -47,9 +47,8 @@ def test_disabled_prints_nothing_and_still_counts():
 
 
 def test_reconstruct_walks_its_stages_in_order(tmp_path, monkeypatch):
-    from capture import synthetic
     from capture.reconstruct import reconstruct
-    from capture.synthetic import make_synthetic
+    from capture.synth import make_synthetic, small_scene
 
     runs = []
 
@@ -64,7 +63,7 @@ def test_reconstruct_walks_its_stages_in_order(tmp_path, monkeypatch):
             self.log.append((self.stage, self.position))
 
     monkeypatch.setattr(P, "Progress", Recorder)
-    make_synthetic(synthetic.small_scene("ggx-lambert", image_size=32, texture_size=16, n_views=3, supersample=1),
+    make_synthetic(small_scene("ggx-lambert", image_size=32, texture_size=16, n_views=3, supersample=1),
                    tmp_path / "ds")
     reconstruct(tmp_path / "ds", model="ggx-lambert", out_dir=tmp_path / "o", progress=False, footprint=False)
     (p,) = runs

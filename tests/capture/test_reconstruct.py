@@ -10,12 +10,12 @@ import torch
 
 import capture.reconstruct as R
 import materials
-from capture import synthetic
+from capture import synth
 from capture.dataset import DatasetError
 from capture.fit.joint import JOINT_ATTEMPTS
 from capture.observations import synthetic_observations
 from capture.reconstruct import UNRESOLVED_WARN, ReconstructionError, unresolved_roughness
-from capture.synthetic import make_synthetic
+from capture.synth import make_synthetic
 from materials.roughness import half_max_angle
 from renderer.imageio import read_exr
 
@@ -27,7 +27,7 @@ from renderer.imageio import read_exr
 
 
 def small_scene(*args, **kw):
-    return synthetic.small_scene(*args, **{"supersample": 1, **kw})
+    return synth.small_scene(*args, **{"supersample": 1, **kw})
 
 
 def reconstruct(dataset, *args, **kw):
@@ -399,7 +399,7 @@ def test_static_lights_tell_studio_lamps_from_a_flash(rig, camera_rig, static):
     # (12 positions for 6 views × 2 lights), and so do studio lamps under a turntable in the object's frame: its two
     # lamps sit 180° apart, so each of the 6 positions lights 2 of the 6 views (not static)
     from capture.reconstruct import static_lights
-    from capture.synthetic import build_scene
+    from capture.synth import build_scene
 
     cfg = small_scene("ggx-lambert", image_size=32, texture_size=8, n_views=6, light_rig=rig, camera_rig=camera_rig)
     got, n_lights, pairs = static_lights(build_scene(cfg).views)

@@ -10,7 +10,7 @@ import torch
 import materials
 from capture.dataset import camera_sees_mesh, load_dataset
 from capture.photo import PhotoModel
-from capture.synthetic import (
+from capture.synth import (
     REGION_NAMES,
     SyntheticConfig,
     SyntheticError,

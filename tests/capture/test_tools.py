@@ -49,7 +49,7 @@ def test_pareto_plot_writes_a_png(tmp_path):
 
 def test_extreme_truth_stress_configs():
     from capture.stress import EXTREME_TRUTH, STRESS_SCENARIOS, _stress_config
-    from capture.synthetic import build_scene
+    from capture.synth import build_scene
 
     (levels,) = [lv for _, field, lv, _ in STRESS_SCENARIOS if field == "uniform"]
     assert set(levels) == set(EXTREME_TRUTH)

@@ -10,11 +10,11 @@ and re-renders get to a real material.
 
 Scene (:func:`make_measured_scene`)
 -----------------------------------
-The mesh, cameras and lights are built exactly as :mod:`capture.synthetic` builds them
-(:func:`capture.synthetic.build_mesh`, :func:`~capture.synthetic.build_cameras`,
-:func:`~capture.synthetic.build_lights`, from a :class:`~capture.synthetic.SyntheticConfig` whose ``model`` is
+The mesh, cameras and lights are built exactly as :mod:`capture.synth.scenes` builds them
+(:func:`capture.synth.build_mesh`, :func:`~capture.synth.build_cameras`,
+:func:`~capture.synth.build_lights`, from a :class:`~capture.synth.SyntheticConfig` whose ``model`` is
 only a placeholder). The texture is split into K vertical stripes in u (:func:`region_map`, region ids 1..K, one
-material per region, like the procedural stripes of :mod:`capture.synthetic`), so each region wraps around the
+material per region, like the procedural stripes of :mod:`capture.synth.scenes`), so each region wraps around the
 sphere and every camera of an orbit sees several. Per view: one G-buffer and one
 :func:`renderer.shading.prepare` (shadow rays), then for each light ``E·V·f_r·cos θ_i`` with f_r from
 ``materials.get("measured", material=NAME).cosine_brdf`` evaluated, per region, on the samples whose *nearest
@@ -62,8 +62,8 @@ from renderer.gbuffer import render_gbuffer
 from renderer.shading import prepare
 from renderer.texture import texel_centers
 
-from .dataset import View, load_dataset, write_dataset
-from .synthetic import SyntheticConfig, build_cameras, build_lights, build_mesh
+from ..dataset import View, load_dataset, write_dataset
+from .scenes import SyntheticConfig, build_cameras, build_lights, build_mesh
 
 __all__ = [
     "DEFAULT_MATERIALS", "MeasuredSceneConfig", "MeasuredSceneError", "region_map", "measured_scene",
@@ -88,7 +88,7 @@ class MeasuredSceneConfig:
         materials: MERL names, one region each (ids 1..K in this order); 1 to 255 names.
         mesh, mesh_options, n_views, image_size, texture_size, camera_rig, elevations, fov_y_deg, distance,
             light_rig, n_lights, light_offset_deg, light_irradiance, shadows, seed: as in
-            :class:`capture.synthetic.SyntheticConfig` (pixels, degrees, world units, W/m²).
+            :class:`capture.synth.SyntheticConfig` (pixels, degrees, world units, W/m²).
         max_theta_deg: the decoder's mask (90 = none; 80 drops MERL's unreliable grazing angles).
         symmetric: evaluate the decoder reciprocally (mean of φ_d and π − φ_d).
     """
@@ -124,7 +124,7 @@ class MeasuredSceneConfig:
         self.geometry()  # and so do bad geometry fields (SyntheticError names the field)
 
     def geometry(self) -> SyntheticConfig:
-        """The :class:`~capture.synthetic.SyntheticConfig` of the mesh/camera/light fields (model: placeholder)."""
+        """The :class:`~capture.synth.SyntheticConfig` of the mesh/camera/light fields (model: placeholder)."""
         return SyntheticConfig(
             mesh=self.mesh, mesh_options=dict(self.mesh_options), n_views=self.n_views, image_size=self.image_size,
             texture_size=self.texture_size, model="lambert", camera_rig=self.camera_rig,
@@ -218,7 +218,7 @@ def make_measured_scene(config: MeasuredSceneConfig | None = None, out_dir=None,
     if not keep or any(not 0 <= i < len(all_views) for i in keep):
         raise MeasuredSceneError(f"views must be indices in 0..{len(all_views) - 1}, got {views!r}")
     meta = {
-        "generator": "capture.measured_scene.make_measured_scene",
+        "generator": "capture.synth.make_measured_scene",
         "config": asdict(config),
         "views_written": keep,
         "measured": {
@@ -263,7 +263,7 @@ def read_truth(dataset) -> tuple[Tensor, dict[int, str]]:
     info = (ds.meta or {}).get("measured") if hasattr(ds, "meta") else None
     if not isinstance(info, Mapping) or "regions" not in info or "materials" not in info:
         raise MeasuredSceneError("dataset has no meta.measured block (regions + materials); write it with "
-                                 "capture.measured_scene.make_measured_scene")
+                                 "capture.synth.make_measured_scene")
     return torch.tensor(info["regions"], dtype=torch.long), {int(k): v for k, v in info["materials"].items()}
 
 
@@ -312,9 +312,9 @@ def capture_benchmark(config: MeasuredSceneConfig | None = None, models: Sequenc
     from renderer.imageio import read_exr, read_png
     from renderer.shading import shade
 
-    from . import brdf_fit
-    from .metrics import image_metrics
-    from .reconstruct import ReconstructionError, reconstruct
+    from .. import brdf_fit
+    from ..metrics import image_metrics
+    from ..reconstruct import ReconstructionError, reconstruct
 
     config = config or measured_scene()
     tmp = None

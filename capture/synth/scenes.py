@@ -74,8 +74,8 @@ from renderer.mesh import Mesh, load_mesh, nonconvex, plane, save_mesh, torus, u
 from renderer.shading import prepare, shade
 from renderer.texture import texel_centers, texel_of
 
-from .dataset import GroundTruth, View, model_from_spec, model_spec, write_dataset
-from .photo import PhotoModel
+from ..dataset import GroundTruth, View, model_from_spec, model_spec, write_dataset
+from ..photo import PhotoModel
 
 __all__ = [
     "SyntheticConfig", "SyntheticError", "Scene", "BUILTIN_MESHES", "CAMERA_RIGS", "LIGHT_RIGS", "REGION_NAMES",
@@ -643,7 +643,7 @@ def make_synthetic(config: SyntheticConfig, out_dir, overwrite: bool = False) ->
         photo=config.photo.to_dict(),
     )
     meta = {
-        "generator": "capture.synthetic.make_synthetic",
+        "generator": "capture.synth.make_synthetic",
         "config": config.to_dict(),
         "highlight_coverage": cov,
         "clipped_pixels": clipped,
