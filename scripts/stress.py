@@ -17,7 +17,7 @@ not finite.
 import argparse
 import sys
 
-from capture.stress import model_sampled_table, model_stability_table, run_reconstruction_stress
+from capture.bench import model_sampled_table, model_stability_table, run_reconstruction_stress
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

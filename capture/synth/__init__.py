@@ -17,6 +17,7 @@ from .measured import (
     read_truth,
     region_map,
     render_measured,
+    render_measured_scene,
 )
 from .scenes import (
     BUILTIN_MESHES,
@@ -44,5 +45,5 @@ __all__ = [
     "MeasuredSceneConfig", "MeasuredSceneError", "Scene", "SyntheticConfig", "SyntheticError", "build_cameras",
     "build_lights", "build_mesh", "build_scene", "default_scene", "highlight_coverage", "make_measured_scene",
     "make_synthetic", "measured_scene", "procedural_maps", "read_truth", "region_map", "render_measured",
-    "render_scene", "small_scene",
+    "render_measured_scene", "render_scene", "small_scene",
 ]

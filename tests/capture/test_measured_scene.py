@@ -7,6 +7,7 @@ import torch
 
 import materials
 import materials.measured  # noqa: F401  registers "measured"
+from capture.bench.measured import capture_benchmark
 from capture.dataset import load_dataset
 from capture.synth import measured as M
 from renderer.shading import shade
@@ -38,7 +39,7 @@ def test_config_rejects_unknown_or_repeated_materials():
 
 
 def _views(cfg):
-    images, views, preps, mesh, regions = M._render(cfg)
+    images, views, preps, mesh, regions = M.render_measured_scene(cfg)
     return images, views, preps, mesh, regions
 
 
@@ -111,8 +112,8 @@ def test_capture_of_the_default_measured_scene_regression(tmp_path):
     of the same material on every channel. Thresholds leave ~1.5 dB / 0.01 SSIM of margin."""
     from capture import brdf_fit
 
-    rows = M.capture_benchmark(M.measured_scene(), models=("lambert", "ggx-lambert"), work_dir=tmp_path,
-                               fit_reference=False)
+    rows = capture_benchmark(M.measured_scene(), models=("lambert", "ggx-lambert"), work_dir=tmp_path,
+                             fit_reference=False)
     lam, ggx = rows
     assert lam["error"] is None and ggx["error"] is None
     assert lam["psnr"] > 16.0 and lam["ssim"] > 0.95
@@ -133,7 +134,7 @@ def test_auto_picks_the_specular_model_on_the_measured_scene(tmp_path):
     ggx-lambert, 28.8 dB on the benchmark's held-out views. With the RMSE (highlight pixels dominate) it kept
     lambert (17.8 dB). The 6 % gain is near the 5 % threshold: a failure here means the selection changed, to be
     looked at."""
-    (row,) = M.capture_benchmark(M.measured_scene(), models=("auto",), work_dir=tmp_path, fit_reference=False)
+    (row,) = capture_benchmark(M.measured_scene(), models=("auto",), work_dir=tmp_path, fit_reference=False)
     assert row["error"] is None
     assert row["chosen"] == "ggx-lambert", row["chosen"]
     assert row["psnr"] > 25.0

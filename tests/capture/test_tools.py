@@ -4,8 +4,8 @@ import math
 
 import pytest
 
+from capture.bench.timing import growth_exponent
 from capture.report import replace_section
-from capture.scaling import growth_exponent
 
 
 @pytest.mark.parametrize("k", [0.5, 1.0, 2.0, 3.0])
@@ -34,7 +34,7 @@ def test_replace_section_keeps_hand_written_text(tmp_path):
 
 
 def test_pareto_plot_writes_a_png(tmp_path):
-    from capture.benchmark import plot_reconstruction_pareto
+    from capture.bench.reconstruction import plot_reconstruction_pareto
 
     rows = [{"rig": rig, "label": lab, "seconds": s, "rmse_observed": {"albedo": 0.1, "f0": 0.2, "roughness": 0.3},
              "rmse_observable": {"albedo": 0.001, "f0": 0.01, "roughness": float("nan")}}
@@ -48,7 +48,7 @@ def test_pareto_plot_writes_a_png(tmp_path):
 
 
 def test_extreme_truth_stress_configs():
-    from capture.stress import EXTREME_TRUTH, STRESS_SCENARIOS, _stress_config
+    from capture.bench.stress import EXTREME_TRUTH, STRESS_SCENARIOS, _stress_config
     from capture.synth import build_scene
 
     (levels,) = [lv for _, field, lv, _ in STRESS_SCENARIOS if field == "uniform"]

@@ -11,9 +11,9 @@ import torch
 import materials
 from materials.validation import SampledReport, check_stability, sampled_stability
 
-from .benchmark import machine_description
-from .plots import save_figure
-from .report import replace_section
+from ..plots import save_figure
+from ..report import replace_section
+from .timing import machine_description
 
 
 def model_stability_table(n_random: int = 4096, out: str | None = None) -> tuple[str, bool]:
@@ -172,8 +172,8 @@ STRESS_SCENARIOS = (
 def _stress_config(field: str, level):
     from dataclasses import replace
 
-    from .photo import PhotoModel
-    from .synth import small_scene
+    from ..photo import PhotoModel
+    from ..synth import small_scene
 
     base = small_scene("ggx-lambert", image_size=96, texture_size=32, n_views=6)
     if field == "full_well":
@@ -207,8 +207,8 @@ def reconstruction_stress(workdir, scenarios=STRESS_SCENARIOS) -> list[dict]:
 
     from renderer.imageio import read_exr
 
-    from .reconstruct import reconstruct
-    from .synth import make_synthetic
+    from ..reconstruct import reconstruct
+    from ..synth import make_synthetic
 
     workdir = Path(workdir)
     rows = []

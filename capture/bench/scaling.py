@@ -4,26 +4,19 @@ texture resolution and lights, with the fitted growth exponent (time ∝ x^k).
 Each configuration builds a synthetic scene (capture.synth) and times the stages the
 reconstruction repeats or pays once: G-buffers (once per view), ``prepare`` (once per view: per-light
 Angles, shadows), and one differentiable ``shade`` forward + backward of every view (what every
-solver iteration costs).
+solver iteration costs). ``scripts/benchmark.py scaling`` runs :func:`run_scaling_benchmark`.
 """
 
 from __future__ import annotations
 
-import math
-import resource
 import time
 from dataclasses import replace
-
-import torch
 
 from renderer.gbuffer import render_gbuffer
 from renderer.shading import prepare, shade
 
-from .synth import build_scene, small_scene
-
-
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+from ..synth import build_scene, small_scene
+from .timing import growth_exponent, machine_description, peak_rss_mib
 
 
 def time_forward(config) -> dict:
@@ -40,15 +33,7 @@ def time_forward(config) -> dict:
     t3 = time.perf_counter()
     pairs = sum(int(t.index.numel()) for p in preps for t in p.lights)
     return {"gbuffer_s": t1 - t0, "prepare_s": t2 - t1, "shade_fb_s": t3 - t2, "pairs": pairs,
-            "peak_rss_mb": _peak_rss_mb()}
-
-
-def growth_exponent(xs: list[float], ys: list[float]) -> float:
-    """Least-squares slope of log y against log x (time ∝ x^k → k)."""
-    lx = torch.tensor([math.log(x) for x in xs], dtype=torch.float64)
-    ly = torch.tensor([math.log(max(y, 1e-9)) for y in ys], dtype=torch.float64)
-    lx, ly = lx - lx.mean(), ly - ly.mean()
-    return float((lx * ly).sum() / (lx * lx).sum())
+            "peak_rss_mb": peak_rss_mib()}
 
 
 #: The sweeps: (axis label, SyntheticConfig field, values). Base: small_scene("ggx-lambert").
@@ -70,8 +55,7 @@ def run_scaling_benchmark(out: str | None = None) -> str:
     """Run :data:`SWEEPS` and return (and with ``out`` write) a markdown table with growth exponents."""
     from pathlib import Path
 
-    from .benchmark import machine_description
-    from .report import replace_section
+    from ..report import replace_section
 
     base = small_scene("ggx-lambert", image_size=128, texture_size=128, n_views=8)
     lines = [
