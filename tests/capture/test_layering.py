@@ -5,8 +5,14 @@ function-local ones alike):
 * no module of the project imports an underscore-prefixed name from another of its modules (a helper used across
   modules is a public, documented name of the module that owns it). Tests are exempt: they exercise private
   helpers of the module they test;
-* no import cycles inside ``capture/fit/`` (its ``__init__`` imports the stages; a stage importing the package
-  itself would close a cycle through it).
+* the rooms of ``capture`` (docs/architecture.md): the pipeline (the modules at the top of ``capture/``) and its
+  solver stages (``capture/fit/``) import nothing from ``capture/synth/`` (scenes with a known truth) or
+  ``capture/bench/`` (benchmarks and stress tests), except the ``synth`` and ``demo`` commands of ``capture.cli``;
+  ``capture/synth/`` uses from the rest of ``capture`` only the dataset format and the photo model, and nothing in
+  ``capture`` imports ``capture/bench/``;
+* no import cycles among the modules of the three packages (a package's ``__init__`` imports its modules, so a
+  module importing its own package, e.g. a stage of ``capture/fit/`` importing ``capture.fit``, closes a cycle
+  through it).
 """
 
 from __future__ import annotations
@@ -62,7 +68,8 @@ def _in(module: str, package: str) -> bool:
 
 
 def test_the_sources_are_found():
-    assert {"materials", "renderer", "capture", "capture.fit", "capture.fit.fast"} <= set(MODULES)
+    assert {"materials", "renderer", "capture", "capture.fit", "capture.fit.fast", "capture.synth",
+            "capture.synth.scenes", "capture.bench", "capture.bench.reconstruction"} <= set(MODULES)
 
 
 def test_lower_layers_import_nothing_from_higher_ones():
@@ -82,35 +89,85 @@ def test_no_module_imports_a_private_name_of_another():
     assert stale == [], f"allow-list entries no longer needed, remove them: {stale}"
 
 
-def test_no_import_cycles_inside_capture_fit():
-    fit = {n: p for n, p in MODULES.items() if _in(n, "capture.fit")}
+#: The rooms of ``capture`` (docs/architecture.md) that the pipeline must not depend on, and who may import them.
+SYNTH, BENCH = "capture.synth", "capture.bench"
+#: Modules outside capture/synth/ and capture/bench/ that may import capture/synth/: the ``synth`` and ``demo``
+#: commands write synthetic datasets.
+SYNTH_USERS = {"capture.cli"}
+#: What capture/synth/ may import from the rest of capture: the dataset format and the photo model.
+SYNTH_NEEDS = {"capture.dataset", "capture.photo"}
+
+
+def _capture_imports():
+    """``(importing module, imported capture module)`` for every import between two modules of ``capture``."""
+    return [(name, module) for name, path in MODULES.items() if _in(name, "capture")
+            for module, _ in _imports(name, path) if _in(module, "capture") and module != "capture"]
+
+
+def test_the_pipeline_imports_neither_scenes_nor_benchmarks():
+    edges = _capture_imports()
+    on_synth = sorted({(a, b) for a, b in edges if _in(b, SYNTH) and not _in(a, SYNTH) and not _in(a, BENCH)
+                       and a not in SYNTH_USERS})
+    assert on_synth == [], f"capture modules importing capture/synth/ (only {sorted(SYNTH_USERS)} may): {on_synth}"
+    on_bench = sorted({(a, b) for a, b in edges if _in(b, BENCH) and not _in(a, BENCH)})
+    assert on_bench == [], f"capture modules importing capture/bench/ (scripts and tests may, nothing else): {on_bench}"
+    # the allowance is still needed (the commands do write synthetic datasets)
+    assert {a for a, b in edges if _in(b, SYNTH) and not _in(a, SYNTH) and not _in(a, BENCH)} == SYNTH_USERS
+
+
+def test_scenes_use_only_the_dataset_format_and_the_photo_model():
+    edges = _capture_imports()
+    found = {b for a, b in edges if _in(a, SYNTH) and not _in(b, SYNTH)}
+    extra = sorted(found - SYNTH_NEEDS)
+    assert extra == [], f"capture/synth/ imports {extra}; from the rest of capture it may use {sorted(SYNTH_NEEDS)}"
+
+
+def _graph() -> dict[str, set[str]]:
+    """Module → the modules of the three packages it imports (an imported name resolves to its module, a package's
+    own name to the package)."""
+    mods = {n for n in MODULES if not _in(n, "scripts")}
+    by_length = sorted(mods, key=len, reverse=True)
     graph = {}
-    for name, path in fit.items():
+    for name in mods:
         deps = set()
-        for module, _ in _imports(name, path):
-            # an import of a stage from capture.fit's own namespace goes to that stage, the package otherwise
-            target = next((m for m in sorted(fit, key=len, reverse=True) if _in(module, m)), None)
+        for module, _ in _imports(name, MODULES[name]):
+            target = next((m for m in by_length if _in(module, m)), None)
             if target is not None and target != name:
                 deps.add(target)
         graph[name] = deps
-    assert graph["capture.fit"] >= {"capture.fit.fast", "capture.fit.adam"}
+    return graph
+
+
+def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` as ``[a, b, …, a]``, or None."""
     state: dict[str, int] = {}
     stack: list[str] = []
 
     def visit(n):
         state[n] = 1
         stack.append(n)
-        for m in sorted(graph[n]):
+        for m in sorted(graph.get(n, ())):
             if state.get(m) == 1:
-                raise AssertionError(f"import cycle in capture/fit: {' → '.join(stack[stack.index(m):] + [m])}")
-            if m not in state:
-                visit(m)
+                return stack[stack.index(m):] + [m]
+            if m not in state and (cycle := visit(m)):
+                return cycle
         stack.pop()
         state[n] = 2
+        return None
 
     for n in sorted(graph):
-        if n not in state:
-            visit(n)
+        if n not in state and (cycle := visit(n)):
+            return cycle
+    return None
+
+
+def test_no_import_cycles():
+    graph = _graph()
+    # the graph sees packages importing their modules and modules importing across rooms
+    assert graph["capture.fit"] >= {"capture.fit.fast", "capture.fit.adam"}
+    assert {"capture.synth", "capture.bench.timing"} <= graph["capture.bench.reconstruction"]
+    cycle = _find_cycle(graph)
+    assert cycle is None, f"import cycle: {' → '.join(cycle)}"
 
 
 def test_the_checks_catch_what_they_look_for(tmp_path):
@@ -120,3 +177,6 @@ def test_the_checks_catch_what_they_look_for(tmp_path):
     src.write_text("from .noise import _hidden\n\ndef f():\n    from ..metrics import thing\n    import renderer\n")
     got = _imports("capture.fit.x", src)
     assert ("capture.fit.noise", "_hidden") in got and ("capture.metrics", "thing") in got and ("renderer", None) in got
+    # the cycle search finds a cycle through a package's __init__ and none in a tree
+    assert _find_cycle({"p": {"p.a"}, "p.a": {"p.b"}, "p.b": {"p"}}) == ["p", "p.a", "p.b", "p"]
+    assert _find_cycle({"p": {"p.a", "p.b"}, "p.a": {"p.b"}, "p.b": set()}) is None
