@@ -34,6 +34,7 @@ from torch import Tensor
 
 from materials.geometry import Angles
 from materials.model import Model
+from renderer.shading import radiance_sum
 
 __all__ = ["Observations", "ObservationError", "DROP_REASONS", "observe_views", "synthetic_observations"]
 
@@ -165,17 +166,9 @@ class Observations:
         ``L_s = Σ_pairs E·V · model.cosine_brdf(angles, p_s)`` (+ environment terms), accumulated
         with ``index_add``; differentiable (reverse and forward mode) with respect to ``params``.
         """
-        S = self.n_samples
-        ref = next(iter(params.values()))
-        # index_select rather than x[index]: 0.7 against 3.3 ms for 393 000 rows of 3 (1 thread)
-        pq = {k: torch.index_select(x, 0, self.pair_sample) for k, x in params.items()}
-        rad = self.irradiance.to(ref.dtype) * model.cosine_brdf(self.angles, pq)
-        out = torch.zeros(S, 3, dtype=rad.dtype, device=rad.device).index_add(0, self.pair_sample, rad)
-        for light, idx in self.env_terms:
-            pe = {k: x[idx] for k, x in params.items()}
-            env = model.environment(light, self.n[idx], self.v[idx], pe)
-            out = out.index_add(0, idx, env.expand(len(idx), 3))
-        return out
+        envs = [(light, idx, idx, self.n[idx], self.v[idx]) for light, idx in self.env_terms]
+        return radiance_sum(model, params, self.n_samples,
+                            [(self.pair_sample, self.pair_sample, self.angles, self.irradiance)], envs)
 
     # -- subsets and casts --------------------------------------------------------------------
     def select(self, keep: Tensor) -> Observations:

@@ -35,7 +35,8 @@ from .lights import DirectionalLight, LightError, PointLight, visibility
 from .mesh import Mesh
 from .texture import bilinear_weights, gather, texel_of
 
-__all__ = ["LightTerm", "EnvTerm", "Prepared", "prepare", "shade", "render", "check_maps", "ShadingError"]
+__all__ = ["LightTerm", "EnvTerm", "Prepared", "prepare", "shade", "radiance_sum", "render", "check_maps",
+           "ShadingError"]
 
 SAMPLING = ("bilinear", "nearest")
 
@@ -242,14 +243,38 @@ def shade(model: Model, maps: Mapping[str, Tensor], prepared: Prepared, sampling
     for name, m in maps.items():
         index, weight = prepared.texels(m.shape[0], m.shape[1], sampling)
         params[name] = gather(m, index, weight)
-    out = torch.zeros(prepared.n_samples, 3, dtype=dtype, device=dev)
-    for term in prepared.lights:
-        p = {k: x[term.local] for k, x in params.items()}
-        out = out.index_add(0, term.index, term.irradiance * model.cosine_brdf(term.angles, p))
-    for env in prepared.envs:
-        p = {k: x[env.local] for k, x in params.items()}
-        rad = model.environment(env.light, prepared.n[env.local], prepared.v[env.local], p)
-        out = out.index_add(0, env.index, rad.expand(len(env.index), 3))
+    lights = [(t.local, t.index, t.angles, t.irradiance) for t in prepared.lights]
+    envs = [(e.light, e.local, e.index, prepared.n[e.local], prepared.v[e.local]) for e in prepared.envs]
+    return radiance_sum(model, params, prepared.n_samples, lights, envs, dtype=dtype, device=dev)
+
+
+def radiance_sum(model: Model, params: Mapping[str, Tensor], n_out: int, lights=(), envs=(), *, dtype=None,
+                 device=None) -> Tensor:
+    """Radiance ``[n_out, 3]`` from per-sample parameters: the one sum both :func:`shade` and the fit's
+    observations (:meth:`capture.observations.Observations.predict`) evaluate.
+
+    ``Σ_terms E·V · model.cosine_brdf(angles, p[local])`` accumulated at ``index`` with ``index_add``, then each
+    environment's ``model.environment(env, n, v, p[local])``; differentiable with respect to ``params``.
+
+    Args:
+        params: name → ``[S, C]`` canonical values of the samples.
+        lights: ``(local [M], index [M], angles, irradiance [M, 3])`` per group of (sample, light) pairs: the
+            pairs' rows of ``params`` and of the output.
+        envs: ``(light, local [K], index [K], n [K, 3], v [K, 3])`` per environment light.
+        dtype, device: of the output (default: the first parameter's).
+    """
+    ref = next(iter(params.values()), None)
+    dtype = dtype or ref.dtype
+    device = device or ref.device
+    out = torch.zeros(n_out, 3, dtype=dtype, device=device)
+    for local, index, angles, irradiance in lights:
+        # index_select rather than x[index]: 0.7 against 3.3 ms for 393 000 rows of 3 (1 thread)
+        p = {k: torch.index_select(x, 0, local) for k, x in params.items()}
+        out = out.index_add(0, index, irradiance.to(dtype) * model.cosine_brdf(angles, p))
+    for light, local, index, n, v in envs:
+        p = {k: x[local] for k, x in params.items()}
+        rad = model.environment(light, n, v, p)
+        out = out.index_add(0, index, rad.expand(len(index), 3))
     return out
 
 
