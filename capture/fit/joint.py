@@ -88,7 +88,6 @@ class _SharingPrior:
         self.lap = None
         self.delta = float(delta)
         self.mu = 0.0
-        self.omega = None
         self.target = None           # [T, C] canonical proposal of the unary term (set_anchor)
         self.anchored = None         # [C] 1 on the columns it ties
         self.anchor_weight = 0.0
@@ -150,7 +149,6 @@ class _SharingPrior:
         wu = self.mu * irls_weights(du, "huber", self.delta) * self.edge_u
         wv = self.mu * irls_weights(dv, "huber", self.delta) * self.edge_v
         wb = self.mu * irls_weights(db, "huber", self.delta)
-        self.omega = (wu, wv, wb)
         g = self._spread(wu * du, wv * dv, wb * db, -1.0, 1.0)
         deg = self._spread(wu, wv, wb, 1.0, 1.0)
         if self.target is not None and self.nu > 0:

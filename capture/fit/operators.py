@@ -18,8 +18,8 @@ __all__ = ["CsrPattern", "sampling_operator", "PixelJacobian", "PixelOperator", 
 
 #: Largest difference, relative to the largest pixel value, between the model evaluated at other parameter values
 #: and the prediction of its Jacobian for the model to count as affine (:meth:`PixelOperator.linearise`): the
-#: evaluation's float32 rounding summed over a pixel's ≤ 16 samples is ~1e-6 of it, a curved model's misses are
-#: ≥ 1e-2 for a halving of its parameters.
+#: evaluation's float32 rounding summed over a pixel's ≤ 16 samples is ~1e-6 of it; a model that is not affine
+#: misses by its curvature over a halving of every parameter, far above that.
 AFFINE_TOL = 1e-5
 
 
@@ -121,7 +121,7 @@ class PixelOperator:
         self.y = fp.radiance.to(ACC)
         self._pattern = None            # the sparsity pattern of the Jacobian's blocks and its sort orders
         self._affine = None             # (canon, pred, J) once the model is found affine in its parameters
-        self._affine_checked = None
+        self._affine_checked = False
 
     def observed(self) -> Tensor:
         """``[T]`` bool: texels some kept pixel reads with a positive weight."""
@@ -172,7 +172,7 @@ class PixelOperator:
         del Jc
         pred = self.group_op @ pred_s
         J = self._jacobian(V, mask, P)
-        if self._affine_checked is None:
+        if not self._affine_checked:
             self._affine_checked = True
             free = sorted({c for cs in groups for c in cs}) == list(range(P))
             if free and all(s.linear for s in layout.specs):
