@@ -124,7 +124,7 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loss", choices=("l2", "huber", "l1"), default="l2", help="robust loss (huber/l1 for highlights)")
     p.add_argument("--tex", type=int, default=None, help="texture size of the recovered maps (default: the dataset's)")
     p.add_argument("--sampling", choices=("nearest", "bilinear"), default=None,
-                   help="how samples read the maps (default: as the dataset's ground truth, else bilinear)")
+                   help="how samples read the maps (default: bilinear, as a texture-mapped renderer reads them)")
     p.add_argument("--iterations", type=int, default=None, help="maximum iterations (fast: per-texel LM; adam: steps)")
     p.add_argument("--grid", type=int, default=None, help="fast path: grid size of the closed-form initialisation")
     p.add_argument("--schedule", choices=("joint", "staged"), default=None,

@@ -38,6 +38,7 @@ from __future__ import annotations
 import inspect
 import math
 import operator
+import os
 import shutil
 import time
 from collections.abc import Mapping, Sequence
@@ -168,12 +169,16 @@ _FAST_KEYS = tuple(n for n in FitOptions.names() if n != "loss") + ("footprints"
 _ADAM_KEYS = ("iterations", "lr", "delta", "observable_std", "noise", "sampling", "time_budget_s")
 
 
-def _solve(model, obs: Observations, solver: str, loss: str, options: dict, progress) -> FitResult:
-    keys = _FAST_KEYS if solver == "fast" else _ADAM_KEYS
+def _check_option_names(options: Mapping[str, object]) -> None:
     unknown = sorted(set(options) - set(_FAST_KEYS) - set(_ADAM_KEYS))
     if unknown:
         raise ReconstructionError(f"unknown solver option(s) {unknown}; the fast solver takes {list(_FAST_KEYS)}, "
                                   f"adam takes {list(_ADAM_KEYS)}")
+
+
+def _solve(model, obs: Observations, solver: str, loss: str, options: dict, progress) -> FitResult:
+    keys = _FAST_KEYS if solver == "fast" else _ADAM_KEYS
+    _check_option_names(options)
     fn = solve_fast if solver == "fast" else solve_adam
     return fn(model, obs, loss=loss, progress=progress, **{k: v for k, v in options.items() if k in keys})
 
@@ -509,11 +514,16 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     from capture.dataset import dataset_root
     from capture.outputs import check_output
 
+    if not isinstance(dataset_path, (str, os.PathLike)):
+        raise ReconstructionError(f"dataset_path must be the dataset's folder (a str or a path), got "
+                                  f"{type(dataset_path).__name__}: pass the folder load_dataset() was given")
+
     # before any work: never the dataset or inside it, an existing folder only with force, a folder we can write in
     out_dir = check_output(out_dir, {dataset_root(dataset_path): "the dataset folder"}, force=force,
                            error=ReconstructionError, force_flag="force=True (--force)")
     if solver not in ("fast", "adam"):
         raise ReconstructionError(f"solver must be 'fast' or 'adam', got {solver!r}")
+    _check_option_names(options)  # before any work: a misspelt option fails now, not after the observations
     if loss not in LOSSES:
         raise ReconstructionError(f"loss must be one of {LOSSES}, got {loss!r}")
     if isinstance(auto_chi2, bool) or not isinstance(auto_chi2, (int, float)) or not auto_chi2 >= 0:
@@ -613,7 +623,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             "pixels": fp_all.n_pixels, "samples": fp_all.n_samples,
             "samples_per_pixel": dict(zip(*(x.tolist() for x in torch.unique(fp_all.counts, return_counts=True)),
                                           strict=True)),
-            "rays_cast": fp_all.cast_rays, "rays_saved_vs_uniform": saving(fp_all), "drops": fp_all.drops,
+            "rays_cast": fp_all.cast_rays, "rays_saved_vs_uniform": saving(fp_all),
+            "texture_samples": fp_all.texture_samples, "drops": fp_all.drops,
             "psf_sigma": float(psf)}
     all_obs, held_obs = obs, None
     if held_views:
@@ -1049,9 +1060,10 @@ def _summary(r: Report) -> str:
              + ", ".join(f"{k} {v}" for k, v in r.coverage.get("unobservable", {}).items())]
     fps = r.samples.get("footprints")
     if fps:
-        lines.append(f"image formation: pixel footprints, {fps['pixels']} whole pixels of {fps['samples']} sub-pixel "
-                     f"samples (per pixel: " + ", ".join(f"{k}: {v}" for k, v in fps["samples_per_pixel"].items())
-                     + f"; {fps['rays_saved_vs_uniform']:.0%} fewer than 16 per pixel); fit χ² per residual "
+        lines.append(f"image formation: pixel footprints, {fps['pixels']} whole pixels of {fps['samples']} shaded rays "
+                     f"(per pixel: " + ", ".join(f"{k}: {v}" for k, v in fps["samples_per_pixel"].items())
+                     + f"; {fps['rays_saved_vs_uniform']:.0%} fewer than 16 per pixel) reading the maps at "
+                     f"{fps.get('texture_samples', 0)} texture sub-samples; fit χ² per residual "
                      f"{r.fit.get('chi2_per_residual', float('nan')):.3g}")
     saved = r.skipped.get("time_saved_estimate_s", {})
     skips = [f"parameters not allocated: {', '.join(r.skipped['parameters_not_allocated']) or 'none'}"] \

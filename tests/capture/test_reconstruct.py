@@ -11,7 +11,7 @@ import torch
 import capture.reconstruct as R
 import materials
 from capture import synth
-from capture.dataset import DatasetError
+from capture.dataset import DatasetError, load_dataset
 from capture.fit.joint import JOINT_ATTEMPTS
 from capture.observations import synthetic_observations
 from capture.reconstruct import UNRESOLVED_WARN, ReconstructionError, unresolved_roughness
@@ -239,7 +239,7 @@ def test_auto_judges_large_maps_on_a_coarser_copy_of_the_problem(lambert_ds, tmp
     assert "auto's trial fits ran on 128² maps" in (tmp_path / "o" / "summary.txt").read_text()
 
 
-def test_bad_input(lambert_ds, tmp_path):
+def test_bad_input(lambert_ds, tmp_path, monkeypatch):
     with pytest.raises(ReconstructionError, match="lambert"):          # lists available names
         reconstruct(lambert_ds, model="no-such-model", out_dir=tmp_path / "x", progress=False)
     assert not (tmp_path / "x").exists()
@@ -249,6 +249,15 @@ def test_bad_input(lambert_ds, tmp_path):
     with pytest.raises(ReconstructionError, match="auto_chi2 must be a number"):
         reconstruct(lambert_ds, model="auto", out_dir=tmp_path / "z", progress=False, auto_chi2=-1)
     assert not (tmp_path / "z").exists()
+    # a misspelt solver option and a loaded dataset instead of its folder fail before any work, naming the fix
+    ds = load_dataset(lambert_ds)
+    with monkeypatch.context() as m:
+        m.setattr("capture.dataset.load_dataset", lambda *a, **k: pytest.fail("the dataset was loaded"))
+        with pytest.raises(ReconstructionError, match=r"unknown solver option\(s\) \['iteratons'\]"):
+            reconstruct(lambert_ds, model="lambert", out_dir=tmp_path / "w", progress=False, iteratons=3)
+        with pytest.raises(ReconstructionError, match="dataset_path must be the dataset's folder"):
+            R.reconstruct(ds, model="lambert", out_dir=tmp_path / "w", progress=False)
+    assert not (tmp_path / "w").exists()
     with pytest.raises(DatasetError):
         reconstruct(tmp_path / "exists", model="lambert", out_dir=tmp_path / "y", progress=False)
     assert not (tmp_path / "y").exists()
