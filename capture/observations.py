@@ -244,7 +244,8 @@ def noise_residual(photo: Tensor, valid: Tensor) -> Tensor:
 def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[int, int], *,
                   exposure: Sequence[float] | float = 1.0, saturation: float | None = None,
                   lights: Sequence | None = None, bilinear: bool = False, dtype=None,
-                  clipped: Sequence[Tensor] | None = None, footprints: bool = False) -> Observations:
+                  clipped: Sequence[Tensor] | None = None, footprints: bool = False,
+                  texels: Sequence[tuple[Tensor, Tensor]] | None = None) -> Observations:
     """Build :class:`Observations` from prepared G-buffers and the photos of the same views.
 
     Args:
@@ -266,6 +267,10 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
             per pixel): each sample's ``weight`` is its G-buffer weight (its share of its pixel) and its
             ``radiance`` its pixel's value; :func:`capture.footprint.observe_footprints` groups them into pixels.
             The drop counts then count samples, and ``background`` is not counted.
+        texels: per view ``(index [N, K], weight [N, K])`` for the N G-buffer samples: the texels each sample
+            reads (its texture footprint, :func:`capture.footprint.texture_footprints`) instead of the bilinear
+            read at its uv; with ``bilinear`` these become ``bilinear_index/weight`` (K the largest over the views,
+            shorter rows padded with their first texel at weight 0).
 
     Returns:
         :class:`Observations` with the drop counts filled in.
@@ -292,6 +297,9 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
             if all(t.light is not x for x in lights):
                 lights.append(t.light)
     light_id = {id(x): i for i, x in enumerate(lights)}
+    if texels is not None and len(texels) != len(prepared):
+        raise ObservationError(f"texels: need one (index, weight) pair per view, got {len(texels)} for "
+                               f"{len(prepared)} views")
     drops = dict.fromkeys(DROP_REASONS, 0)
     parts = []
     for vi, (prep, photo) in enumerate(zip(prepared, photos, strict=True)):
@@ -345,7 +353,14 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         valid = torch.zeros(n_pix, dtype=torch.bool, device=finite.device)
         valid[g.pixel] = finite & ~clipped_s
         resid = noise_residual(torch.nan_to_num(photo / exposures[vi]), valid.reshape(g.height, g.width))
-        parts.append(dict(uv=uv, n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
+        tex = None
+        if texels is not None:
+            ti, tw = texels[vi]
+            if ti.shape != tw.shape or ti.dim() != 2 or ti.shape[0] != len(g):
+                raise ObservationError(f"view {vi}: texels must be (index, weight) of shape [{len(g)}, K] (one row per "
+                                       f"G-buffer sample), got {tuple(ti.shape)} and {tuple(tw.shape)}")
+            tex = (ti[keep_g], tw[keep_g].to(dt))
+        parts.append(dict(tex=tex, uv=uv, n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
                           radiance=pix[keep_g] / exposures[vi], noise=resid.reshape(-1, 3)[g.pixel[keep_g]],
                           pixel=g.pixel[keep_g], pairs=pairs, envs=envs, view=vi, size=(g.height, g.width),
                           weight=g.weight[keep_g].to(dt) if footprints else torch.ones(len(keep_g), dtype=dt)))
@@ -374,7 +389,12 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
     angles = Angles(*(torch.cat([getattr(a, f) for a in ang]) for f in ("nl", "nv", "nh", "lh", "lv")))
     view = torch.cat([torch.full((len(p["uv"]),), p["view"], dtype=torch.long) for p in parts]).to(uv.device)
     bi = bw = None
-    if bilinear:
+    if bilinear and texels is not None:
+        K = max(p["tex"][0].shape[1] for p in parts)
+        bi = torch.cat([torch.cat([p["tex"][0], p["tex"][0][:, :1].expand(-1, K - p["tex"][0].shape[1])], 1)
+                        for p in parts])
+        bw = torch.cat([F.pad(p["tex"][1], (0, K - p["tex"][1].shape[1])) for p in parts])
+    elif bilinear:
         bi, bw = bilinear_weights(uv, H, W)
     return Observations(
         texel=texel_of(uv, H, W), map_size=(H, W), radiance=cat("radiance"),

@@ -34,7 +34,7 @@ from torch import Tensor
 from .camera import Camera, check_supersample
 from .mesh import Mesh
 
-__all__ = ["GBuffer", "render_gbuffer", "render_footprint", "intersect", "intersect_faces", "pixel_filter",
+__all__ = ["GBuffer", "render_gbuffer", "render_footprint", "face_uv", "intersect", "intersect_faces", "pixel_filter",
            "footprint_extent", "check_psf_sigma", "PSF_SUPPORT", "PSF_MAX_SIGMA"]
 
 
@@ -191,6 +191,43 @@ def intersect(mesh: Mesh, origins: np.ndarray, directions: np.ndarray) -> dict[s
     sign = np.where(back, -1.0, 1.0)[:, None]
     return {"ray": ray, "face": face, "t": t, "bary": b, "position": pos, "normal": n * sign,
             "geo_normal": gn * sign, "uv": uv, "view": view, "backface": back}
+
+
+def face_uv(mesh: Mesh, camera: Camera, face: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
+    """Texture coordinates where the rays through image positions ``xy [M, 2]`` meet the planes of the faces
+    ``face [M]``, without casting them: ``(uv [M, 2], ok [M])`` in float64.
+
+    Exact where the ray hits the face itself; beyond its edges it is the face's affine UV map continued over its
+    plane, which differs from the neighbouring face's UVs by the surface's bend across the edge (second order in
+    the distance). Near a hit this is the ray differential of the texture coordinates carried to finite offsets:
+    how a pixel's footprint on the texture is found without a ray per sub-sample. ``ok`` is False where the ray
+    runs parallel to the plane or meets it behind the camera (silhouettes); ``uv`` there is the face's first
+    vertex's and must not be used.
+    """
+    _check_inputs(mesh, camera, "face_uv")
+    if not isinstance(face, Tensor) or face.dim() != 1 or not isinstance(xy, Tensor) or xy.shape != (len(face), 2):
+        raise ValueError(f"face_uv: face must be [M] face indices and xy [M, 2] image positions, got "
+                         f"{tuple(getattr(face, 'shape', ()))} and {tuple(getattr(xy, 'shape', ()))}")
+    o, d = camera.rays_at(xy, dtype=torch.float64)
+    f = mesh.faces.long()[face]
+    V = torch.from_numpy(np.asarray(mesh.tm.vertices, dtype=np.float64))      # the arrays intersect() reads
+    UV = torch.from_numpy(mesh._uvs64())
+    a, b, c = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
+    e0, e1 = b - a, c - a
+    n = torch.linalg.cross(e0, e1)
+    den = (d * n).sum(-1)
+    t = ((a - o) * n).sum(-1) / torch.where(den.abs() > 1e-12 * n.norm(dim=-1), den, torch.ones_like(den))
+    ok = (den.abs() > 1e-12 * n.norm(dim=-1)) & (t > 0)
+    q = o + t[:, None] * d - a
+    d00, d01, d11 = (e0 * e0).sum(-1), (e0 * e1).sum(-1), (e1 * e1).sum(-1)
+    d20, d21 = (q * e0).sum(-1), (q * e1).sum(-1)
+    det = (d00 * d11 - d01 * d01).clamp_min(1e-300)
+    beta = (d11 * d20 - d01 * d21) / det
+    gamma = (d00 * d21 - d01 * d20) / det
+    ua, ub, uc = UV[f[:, 0]], UV[f[:, 1]], UV[f[:, 2]]
+    uv = ua + beta[:, None] * (ub - ua) + gamma[:, None] * (uc - ua)
+    uv = torch.where(ok[:, None], uv, ua)
+    return uv, ok
 
 
 def _check_pixels(pixels, camera: Camera, where: str) -> Tensor:

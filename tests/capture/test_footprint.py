@@ -9,7 +9,14 @@ import materials
 from capture.fit import Layout, solve_fast
 from capture.fit.layout import param_groups
 from capture.fit.operators import PixelOperator
-from capture.footprint import FOOTPRINT_MAX, FOOTPRINT_SPACING, footprint_counts, observe_footprints, saving
+from capture.footprint import (
+    FOOTPRINT_MAX,
+    FOOTPRINT_SPACING,
+    footprint_counts,
+    observe_footprints,
+    saving,
+    texture_footprints,
+)
 from capture.observations import observe_views
 from capture.synth import build_scene, render_scene, small_scene
 from renderer.camera import look_at
@@ -61,14 +68,14 @@ def test_sample_count_follows_the_texel_footprint():
     cam = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_y_deg=30, width=40, height=40)
     g = render_gbuffer(mesh, cam, 1)
     for T in (8, 64):
-        pixels, k, f = footprint_counts(g, (T, T))
+        pixels, k, kt, f = footprint_counts(g, (T, T))
         H = cam.height
         inner = torch.isin(pixels, g.pixel) & ((pixels // H - H // 2).abs() < 5) & ((pixels % H - H // 2).abs() < 5)
         # pixel size on the plane: 2·d·tan(fov/2)/H world units, the plane 2 units wide: T/2 texels per unit
         f_true = 2 * 3.0 * math.tan(math.radians(15)) / H * T / 2.0
         assert torch.allclose(f[inner], torch.full_like(f[inner], f_true), rtol=1e-3)
         k_true = min(max(math.ceil(f_true / FOOTPRINT_SPACING), 1), FOOTPRINT_MAX)
-        assert (k[inner] == k_true).all()
+        assert (kt[inner] == k_true).all() and (k[inner] == 1).all()      # no photo: the shading needs one ray
     assert int(k.max()) == FOOTPRINT_MAX                                   # silhouette pixels
 
 
@@ -196,3 +203,33 @@ def test_psf_sigma_is_validated_where_users_give_it(tmp_path):
     (ds / "scene.json").write_text(json.dumps(doc))
     with pytest.raises(DatasetError, match="psf_sigma"):
         load_dataset(ds, check_images=False)
+
+
+def test_texture_footprint_of_a_plane_is_the_pixel_square_on_the_map():
+    """A plane seen head-on, 4 texels per pixel, one ray per pixel: each ray's texture footprint holds weights
+    summing to 1 whose texel-centre mean is the pixel centre's UV (the grid is symmetric), and a linear ramp read
+    through it equals the ramp at the centre, as the box average of a linear function must; a ray with k = kt
+    reads its own bilinear taps."""
+    from renderer.texture import bilinear_weights
+
+    mesh = plane(size=2.0)
+    cam = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_y_deg=30, width=24, height=24)
+    g = render_gbuffer(mesh, cam, 1)
+    T = 64
+    f = 2 * 3.0 * math.tan(math.radians(15)) / 24 * T / 2.0                       # texels per pixel
+    inner = ((g.pixel // 24 - 12).abs() < 6) & ((g.pixel % 24 - 12).abs() < 6)
+    g = g.select(inner)
+    k = torch.ones(len(g), dtype=torch.long)
+    kt = torch.full_like(k, math.ceil(f / FOOTPRINT_SPACING))
+    share, idx, w = texture_footprints(mesh, cam, g, k, kt, (T, T))
+    assert torch.allclose(share, torch.ones_like(share)) and torch.allclose(w.sum(1), torch.ones(len(g),
+                                                                                                 dtype=w.dtype))
+    assert idx.shape[1] > 4 and bool((w > 0).sum(1).min() >= 9)                   # ~f² texels, not 4 taps
+    x, y = (idx % T).double() + 0.5, (idx // T).double() + 0.5                    # texel centres (texel units)
+    ramp = (w * (0.3 * x - 0.7 * y)).sum(1)
+    u, v = g.uv[:, 0].double() * T, (1 - g.uv[:, 1].double()) * T
+    assert torch.allclose(ramp, 0.3 * u - 0.7 * v, atol=1e-4)
+    _, idx1, w1 = texture_footprints(mesh, cam, g, k, k, (T, T))
+    bi, bw = bilinear_weights(g.uv.double(), T, T)
+    assert torch.equal(idx1.sort(1).values, bi.sort(1).values)
+    assert torch.allclose(w1.sum(1), bw.sum(1))

@@ -173,3 +173,33 @@ def test_gaussian_pixel_filter_is_the_box_convolved_with_the_gaussian():
     w = g.weight.double()[:, None]
     assert (w * off).sum(0).abs().max() < 1e-6
     assert ((w * off ** 2).sum(0) / (1 / 12 + sigma ** 2)).tolist() == pytest.approx([1.0, 1.0], abs=0.02)
+
+
+def test_face_uv_is_the_cast_rays_uv_inside_the_face_and_its_plane_beyond():
+    """Rays through offsets of up to half a pixel from the hits of a sphere: where a cast ray hits the same face,
+    face_uv gives its UV exactly (float64, 1e-9); where it hits a neighbour, the plane's continuation differs by the
+    surface's bend only — far less than the offset's UV step; a ray off the plane's side is flagged."""
+    from renderer.gbuffer import face_uv
+
+    mesh = uv_sphere()
+    cam = look_at((0.0, -3.0, 1.0), (0.0, 0.0, 0.0), fov_y_deg=40, width=48, height=48)
+    g = render_gbuffer(mesh, cam, 1)
+    xy, _ = cam.project(g.position.double())
+    uv0, ok0 = face_uv(mesh, cam, g.face, xy)
+    assert ok0.all() and float((uv0 - g.uv.double()).abs().max()) < 1e-6          # the hit itself (float32 uv)
+    gen = torch.Generator().manual_seed(0)
+    off = torch.rand(len(g), 2, generator=gen, dtype=torch.float64) - 0.5
+    uv, ok = face_uv(mesh, cam, g.face, xy + off)
+    o, d = cam.rays_at(xy + off, dtype=torch.float64)
+    hit = intersect(mesh, o[:1].numpy(), d.numpy())
+    ray = torch.from_numpy(hit["ray"])
+    cast_uv, cast_face = torch.from_numpy(hit["uv"]), torch.from_numpy(hit["face"])
+    same = cast_face == g.face[ray]
+    assert int(same.sum()) > len(g) // 2
+    assert float((uv[ray][same] - cast_uv[same]).abs().max()) < 1e-9
+    step = (uv[ray] - uv0[ray]).norm(dim=-1)
+    seam = (cast_uv - uv0[ray]).norm(dim=-1) > 0.25                                # the sphere's u = 0/1 seam
+    other = ~same & ~seam
+    assert float(((uv[ray][other] - cast_uv[other]).norm(dim=-1)).median()) < 0.05 * float(step.median())
+    with pytest.raises(ValueError, match="face must be"):
+        face_uv(mesh, cam, g.face, xy[:3])
