@@ -102,8 +102,7 @@ def _cmd_reconstruct(args) -> int:
 
     from capture.reconstruct import reconstruct
 
-    extra = {k: getattr(args, k) for k in ("pooled", "iterations", "grid", "schedule", "smoothness")
-             if getattr(args, k) is not None}
+    extra = fit_option_values(args)
     report = reconstruct(args.dataset, model=args.model, out_dir=args.out, force=args.force,
                          solver=args.solver, loss=args.loss, texture_size=args.tex, holdout=args.holdout,
                          footprint=not args.pixel_centres, sampling=args.sampling, threads=args.threads,
@@ -125,26 +124,33 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tex", type=int, default=None, help="texture size of the recovered maps (default: the dataset's)")
     p.add_argument("--sampling", choices=("nearest", "bilinear"), default=None,
                    help="how samples read the maps (default: bilinear, as a texture-mapped renderer reads them)")
-    p.add_argument("--iterations", type=int, default=None, help="maximum iterations (fast: per-texel LM; adam: steps)")
-    p.add_argument("--grid", type=int, default=None, help="fast path: grid size of the closed-form initialisation")
-    p.add_argument("--schedule", choices=("joint", "staged"), default=None,
-                   help="fast path: all parameters every iteration, or Nielsen's stages (scales, shape, all)")
-    p.add_argument("--smoothness", type=float, default=None, help="fast path: weight of a neighbour prior (0 = off)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (1 is faster on a loaded machine)")
     p.add_argument("--float64", action="store_true", help="evaluate the model in float64 (precision studies)")
-    add_pooled_arg(p)
+    add_fit_option_args(p)
     add_known_args(p)
     add_holdout_arg(p)
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
 
 
-def add_pooled_arg(p: argparse.ArgumentParser) -> None:
-    """``--pooled N``: the fast path's pooled material proposals (``solve_fast(pooled=N)``)."""
-    p.add_argument("--pooled", type=int, default=None, metavar="N",
-                   help="fast path: let N×N-texel tiles without an anchor propose materials of their own; "
-                        "default: 4 when the lights stay fixed relative to the object (studio lamps, a dome: a "
-                        "rough material may show no highlight peak), off when they move with the camera "
-                        "(flash, turntable); 0 = off")
+def add_fit_option_args(p: argparse.ArgumentParser, names: tuple[str, ...] | None = None) -> None:
+    """The solver options' flags, generated from :class:`capture.fit.options.FitOptions` (its declaration holds
+    each flag's type, choices and help): ``--iterations``, ``--pooled``, ``--footprint-iterations``, … (only
+    ``names`` when given). Not given = None, so the option's default or the caller's decision applies;
+    :func:`fit_option_values` reads them back."""
+    from capture.fit.options import FitOptions
+
+    group = p.add_argument_group("solver options (capture.fit.options.FitOptions)")
+    for name, kw in FitOptions.cli_flags():
+        if names is None or name in names:
+            group.add_argument("--" + name.replace("_", "-"), dest=name, default=None, **kw)
+
+
+def fit_option_values(args) -> dict:
+    """The solver options given on the command line (:func:`add_fit_option_args`), by name."""
+    from capture.fit.options import FitOptions
+
+    return {name: getattr(args, name) for name, _ in FitOptions.cli_flags()
+            if getattr(args, name, None) is not None}
 
 
 def parse_views(text: str) -> list[int]:

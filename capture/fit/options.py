@@ -14,6 +14,12 @@ from .noise import NOISE, check_loss, check_noise
 __all__ = ["FitOptions"]
 
 
+def _cli(default, type_, help_: str, **argparse_kw):
+    """A field with a command-line flag: ``--name`` (dashes for underscores) of ``type_`` whose help is ``help_``
+    (argparse %-formatting) — :meth:`FitOptions.cli_flags` lists them, :mod:`capture.cli` adds them."""
+    return dataclasses.field(default=default, metadata={"cli": {"type": type_, "help": help_, **argparse_kw}})
+
+
 @dataclass(frozen=True)
 class FitOptions:
     """Options of :func:`capture.fit.fast.solve_fast`, checked in ``__post_init__`` (:class:`SolverError`); the
@@ -101,27 +107,38 @@ class FitOptions:
     """
 
     loss: str = "l2"
-    delta: float | None = None
-    iterations: int | None = None
-    grid: int | None = None
+    delta: float | None = _cli(None, float, "Huber/L1 scale in radiance units (default: 5 %% of the median "
+                                             "measured radiance)")
+    iterations: int | None = _cli(None, int, "maximum iterations (fast: per-texel LM; adam: steps)")
+    grid: int | None = _cli(None, int, "fast path: grid size of the closed-form initialisation")
     refine: int = 3
-    schedule: str = "joint"
-    smoothness: float = 0.0
+    schedule: str = _cli("joint", str, "fast path: all parameters every iteration, or Nielsen's stages "
+                                       "(scales, shape, all)", choices=("joint", "staged"))
+    smoothness: float = _cli(0.0, float, "fast path: weight of a neighbour prior in the per-texel fit (0 = off)")
     tol: float = 1e-10
     observable_std: float | Mapping[str, float] | None = None
     noise: tuple[float, float] = NOISE
     reproject: int = 0
     sampling: str = "nearest"
-    joint_iterations: int | None = None
-    cg_iterations: int | None = None
+    joint_iterations: int | None = _cli(None, int, "fast path: joint LM steps of the pixel-centre refinement "
+                                                   "(default: 6 with the sharing, 3 without; 0 = none)")
+    cg_iterations: int | None = _cli(None, int, "fast path: PCG iterations per joint or footprint step "
+                                                "(default: 30, 25 for the pixel-centre refinement without the "
+                                                "sharing)")
     fill_before_joint: bool = True
     share: bool | None = None
-    candidates: int = 8
-    sharing: float = 1.0
+    candidates: int = _cli(8, int, "fast path: most materials the reflectance sharing clusters")
+    sharing: float = _cli(1.0, float, "fast path: weight of the edge-preserving neighbour prior of the joint "
+                                      "solves (0 = off)")
     sharing_albedo: bool = True
-    anchor_weight: float = 0.03
-    pooled: int = 0
-    footprint_iterations: int | None = None
+    anchor_weight: float = _cli(0.03, float, "fast path: weight of the tie of each texel's material to the "
+                                             "sharing's proposal (0 = off)")
+    pooled: int = _cli(0, int, "fast path: let N×N-texel tiles without an anchor propose materials of their own; "
+                               "default: 4 when the lights stay fixed relative to the object (studio lamps, a "
+                               "dome: a rough material may show no highlight peak), off when they move with the "
+                               "camera (flash, turntable); 0 = off", metavar="N")
+    footprint_iterations: int | None = _cli(None, int, "fast path: LM steps of the final solve on the photos' "
+                                                       "pixel footprints (default: 6)")
 
     def __post_init__(self):
         check_loss(self.loss)
@@ -168,6 +185,12 @@ class FitOptions:
             raise SolverError(f"unknown solve_fast option(s) {unknown}; the options are {list(names)}")
         base = options if options is not None else cls()
         return dataclasses.replace(base, **overrides) if overrides else base
+
+    @classmethod
+    def cli_flags(cls) -> tuple[tuple[str, dict], ...]:
+        """``(name, argparse keywords)`` of the options that have a command-line flag, in declaration order. The
+        flag's default is None (not given): the option's default, or what the caller decides, applies."""
+        return tuple((f.name, dict(f.metadata["cli"])) for f in dataclasses.fields(cls) if "cli" in f.metadata)
 
     @classmethod
     def names(cls) -> tuple[str, ...]:

@@ -141,3 +141,26 @@ def test_the_scripts_are_the_commands_under_their_own_name(tmp_path, capsys):
     assert (options["iterations"], options["grid"], options["schedule"], options["smoothness"],
             options["sampling"]) == (3, 4, "staged", 0.5, "nearest")
     capsys.readouterr()
+
+
+def test_solver_flags_are_generated_from_the_fit_options():
+    """Every FitOptions field declared with a flag is a `reconstruct` flag of its type and choices, parsed back to
+    the option's name; a flag not given stays out (the option's default applies); a bad value is argparse's error."""
+    import dataclasses
+
+    from capture.cli import build_parser, fit_option_values
+    from capture.fit.options import FitOptions
+
+    flags = dict(FitOptions.cli_flags())
+    assert {"iterations", "pooled", "footprint_iterations", "cg_iterations", "anchor_weight"} <= set(flags)
+    assert set(flags) <= set(FitOptions.names())
+    parser = build_parser()
+    args = parser.parse_args(["reconstruct", "d", "--out", "o", "--footprint-iterations", "2", "--schedule", "staged",
+                              "--anchor-weight", "0.1", "--pooled", "0"])
+    assert fit_option_values(args) == {"footprint_iterations": 2, "schedule": "staged", "anchor_weight": 0.1,
+                                       "pooled": 0}
+    assert fit_option_values(parser.parse_args(["reconstruct", "d", "--out", "o"])) == {}
+    # every generated value is one FitOptions accepts
+    dataclasses.replace(FitOptions(), **fit_option_values(args))
+    with pytest.raises(SystemExit):
+        parser.parse_args(["reconstruct", "d", "--out", "o", "--schedule", "sometimes"])
