@@ -311,3 +311,22 @@ def get(name: str, **options) -> Model:
 def available() -> dict[str, str]:
     """Registered model names with their one-line descriptions, sorted by name."""
     return {k: _REGISTRY[k][1] for k in sorted(_REGISTRY)}
+
+
+def models_table() -> str:
+    """The markdown table of every registered model — name, description, parameters — as ``docs/models.md`` holds it
+    (``scripts/param_table.py`` writes it). A model whose data is missing on this machine (``measured``) is listed
+    with its class's declared parameters, the same as where it loads."""
+    rows = ["| name | what | parameters |", "|---|---|---|"]
+    for name in sorted(_REGISTRY):
+        factory, description = _REGISTRY[name]
+        try:
+            specs = get(name).params
+        except (FileNotFoundError, OSError) as exc:     # data missing here: the class's declaration
+            if not (isinstance(factory, type) and issubclass(factory, Model)):
+                raise ValueError(f"model '{name}' cannot be built here ({exc}) and declares no parameters") from exc
+            specs = factory.params
+        names = ", ".join(sp.name for sp in specs) or "none"
+        rows.append(f"| `{name}` | {description} | {names} |")
+    return "\n".join(rows) + "\n"
+

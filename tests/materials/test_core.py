@@ -183,3 +183,17 @@ def test_the_parameter_table_of_docs_models_md_is_the_generated_one():
     rows = committed.splitlines()
     assert len(rows) == 2 + len(CANONICAL) and rows[2].startswith("| `albedo` | 3 | [0, 1] | 0.5 | diffuse")
     assert "| `absorption` | 3 | [0, ∞] |" in committed and "atlas tex2 A (glossiness g) (1)" in committed
+
+
+def test_the_model_table_of_docs_models_md_is_the_generated_one():
+    from pathlib import Path
+
+    import materials
+    from materials.model import models_table
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "models.md").read_text(encoding="utf-8")
+    committed = text.split("<!-- begin:models -->\n", 1)[1].split("\n<!-- end:models -->", 1)[0]
+    assert committed == models_table(), "docs/models.md is stale: run python scripts/param_table.py"
+    rows = committed.splitlines()[2:]
+    assert [r.split("`")[1] for r in rows] == list(materials.available())           # every registered model, once
+    assert "| `lambert` | Lambertian diffuse ρ/π; the baseline every diffuse model reduces to | albedo |" in rows
