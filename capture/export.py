@@ -42,6 +42,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -284,6 +285,194 @@ def _materials(inputs) -> list[Material]:
     return out
 
 
+class _AtlasOptions(NamedTuple):
+    """The validated encoding options of :func:`export_atlas`."""
+
+    fmt: str
+    bits: int
+    transfer: str
+    gutter: int
+    material_model: str
+    compensation: str
+    texture_sets: tuple[str, ...]
+
+
+class _Encoded(NamedTuple):
+    """Each material's texels, before packing: Schüler's tex1|tex2, the linear maps, coverage, coat."""
+
+    tex: list[Tensor]  # [h, w, 8]: tex1 RGBA | tex2 RGBA
+    lin: list[Tensor]  # [h, w, 8]: albedo, f0, roughness, mask
+    coverage: list[Tensor | None]
+    coat: list[Tensor]  # [h, w, 5]: absorption, coat ior, coat roughness; empty when no material has a coat
+    any_coat: bool
+
+
+class _Composed(NamedTuple):
+    """The packed atlas: rectangles, Schüler texels, linear canonical maps and coat texels (or None)."""
+
+    packing: A.Packing
+    texels: Tensor
+    lin_maps: dict[str, Tensor]
+    coat: Tensor | None
+
+
+def _atlas_options(fmt, bits, transfer, gutter, material_model, compensation, texture_sets) -> _AtlasOptions:
+    if fmt not in ("png", "exr"):
+        raise ExportError(f"fmt must be 'png' or 'exr', got {fmt!r}")
+    if bits not in (8, 16):
+        raise ExportError(f"bits must be 8 or 16, got {bits!r}")
+    if transfer not in ("gamma2.2", "srgb"):
+        raise ExportError(f"transfer must be 'gamma2.2' (Schüler) or 'srgb', got {transfer!r}")
+    if material_model not in MATERIAL_MODELS:
+        raise ExportError(f"material_model must be one of {list(MATERIAL_MODELS)}, got {material_model!r}")
+    _check_compensation(compensation)
+    if isinstance(texture_sets, str):
+        texture_sets = [texture_sets]
+    texture_sets = tuple(texture_sets or ())
+    unknown = [t for t in texture_sets if t not in TEXTURE_SETS]
+    if unknown:
+        raise ExportError(f"unknown texture set(s) {unknown}; choose from {list(TEXTURE_SETS)}")
+    return _AtlasOptions(fmt, bits, transfer, gutter, material_model, compensation, texture_sets)
+
+
+def _has_coat(m: Material, p: Mapping[str, Tensor]) -> bool:
+    return "absorption" in p or m.coat_ior is not None
+
+
+def _coat_texels(m: Material, p: Mapping[str, Tensor], h: int, w: int) -> Tensor:
+    """``[h, w, 5]``: absorption, coat ior, coat roughness; a material without a coat gets 0, 1, 0."""
+    absorption = p.get("absorption", torch.zeros(h, w, 3))
+    has_coat = _has_coat(m, p)
+    ior = m.coat_ior if m.coat_ior is not None else (1.5 if has_coat else 1.0)
+    rough = m.coat_roughness if m.coat_roughness is not None else (0.1 if has_coat else 0.0)
+    if not 1.0 <= ior <= 3.0 or not 0.0 <= rough <= 1.0:
+        raise ExportError(f"material '{m.name}': coat_ior {ior} must lie in [1, 3] and coat_roughness "
+                          f"{rough} in [0, 1]")
+    return torch.cat([absorption, torch.full((h, w, 1), ior), torch.full((h, w, 1), rough)], -1)
+
+
+def _encode_materials(mats: Sequence[Material], prepared: Sequence[dict[str, Tensor]], transfer: str) -> _Encoded:
+    """Encode each material for the atlas; the encoder's warnings are re-issued with the material's name."""
+    tex, lin, coverage, coat = [], [], [], []
+    any_coat = any(_has_coat(m, p) for m, p in zip(mats, prepared, strict=True))
+    for m, p in zip(mats, prepared, strict=True):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            t1, t2 = A.encode_schuler(p, transfer)
+        for w in caught:  # stacklevel 3: attributed to export_atlas's caller
+            warnings.warn(f"material '{m.name}': {w.message}", ExportWarning, stacklevel=3)
+        tex.append(torch.cat([t1, t2], dim=-1))
+        mask = p.get("mask", torch.ones_like(p["roughness"]))
+        lin.append(torch.cat([p["albedo"], p["f0"], p["roughness"], mask], dim=-1))
+        cov = p.get("coverage")
+        if cov is None and "mask" in p:
+            cov = p["mask"]
+        coverage.append(None if cov is None else cov[..., 0] > 0)
+        if any_coat:
+            h, w = t1.shape[:2]
+            coat.append(_coat_texels(m, p, h, w))
+    return _Encoded(tex, lin, coverage, coat, any_coat)
+
+
+def _compose_atlas(out: Path, enc: _Encoded, atlas_size, gutter: int) -> _Composed:
+    """Pack the materials' rectangles and compose the Schüler, linear and coat atlases."""
+    sizes = [(t.shape[1], t.shape[0]) for t in enc.tex]
+    try:
+        packing = A.pack_rectangles(sizes, atlas_size, gutter)
+    except A.AtlasError as err:
+        raise ExportError(f"{out}: {err}") from err
+    atlas = A.compose(enc.tex, packing, gutter, enc.coverage)
+    lin_atlas = A.compose(enc.lin, packing, gutter, enc.coverage)
+    lin_maps = {"albedo": lin_atlas[..., 0:3], "f0": lin_atlas[..., 3:6], "roughness": lin_atlas[..., 6:7],
+                "mask": lin_atlas[..., 7:8]}
+    coat_atlas = A.compose(enc.coat, packing, gutter, enc.coverage) if enc.any_coat else None
+    return _Composed(packing, atlas, lin_maps, coat_atlas)
+
+
+def _atlas_sidecar(mats: Sequence[Material], packing: A.Packing, opts: _AtlasOptions, any_coat: bool) -> dict:
+    """``atlas.json`` without the entries of what is written later (texture sets, glTF)."""
+    fmt, transfer = opts.fmt, opts.transfer
+    width, height = packing.size
+    sidecar = {
+        "format": ATLAS_FORMAT,
+        "layout": "schuler-2rgba",
+        "size": {"width": width, "height": height},
+        "gutter": opts.gutter,
+        "transfer": transfer,
+        "storage": {"format": fmt, "bits": opts.bits if fmt == "png" else 32},
+        "uv_convention": "u right, v up, (0,0) at the bottom-left of the image; texel (i, j) centre at "
+                         "u=(j+0.5)/W, v=1-(i+0.5)/H; rect x = column, y = row of its top-left texel",
+        "textures": {
+            "tex1": {"file": f"tex1.{fmt}", "channels": {
+                "R": "albedo.r", "G": "albedo.g", "B": "albedo.b", "A": "mask"},
+                "encoding": {"RGB": transfer, "A": "linear"}},
+            "tex2": {"file": f"tex2.{fmt}", "channels": {
+                "R": "f0.r", "G": "f0.g", "B": "f0.b", "A": "glossiness"},
+                "encoding": {"RGB": transfer, "A": "linear"},
+                "glossiness": "g in [0,1]; Blinn-Phong exponent e = 2^(12 g); roughness r = (2/(e+2))^(1/4)"},
+        },
+        "materials": [],
+    }
+    if any_coat:
+        sidecar["textures"]["absorption"] = {"file": "absorption.exr", "channels": {
+            "R": "absorption.r", "G": "absorption.g", "B": "absorption.b"}, "encoding": {"RGB": "linear float"},
+            "meaning": "Gotanda 2012 eq 3 alpha' (alpha*d for eq 2), >= 0"}
+        sidecar["textures"]["coat"] = {"file": "coat.exr", "channels": {
+            "R": "coat_ior", "G": "coat_roughness", "B": "reserved (0)"}, "encoding": {"RGB": "linear float"},
+            "meaning": "coat ior 1 and absorption 0 mean no coat"}
+    for m, rect in zip(mats, packing.rects, strict=True):
+        u0, v0, u1, v1 = A.rect_uv(rect, packing.size)
+        entry = {"name": m.name, "rect": {"x": rect.x, "y": rect.y, "w": rect.w, "h": rect.h},
+                 "uv": {"u_min": u0, "v_min": v0, "u_max": u1, "v_max": v1}}
+        if m.source:
+            entry["source"] = m.source
+        if m.mesh is not None:
+            entry["mesh"] = f"meshes/{m.name}.obj"
+        sidecar["materials"].append(entry)
+    return sidecar
+
+
+def _all_have_meshes(mats: Sequence[Material]) -> bool:
+    """Whether a GLB can be written; warns when only some materials lack a mesh."""
+    without = [m.name for m in mats if m.mesh is None]
+    if without and len(without) < len(mats):  # all without a mesh: nothing to put in a GLB, silently
+        warnings.warn(f"no atlas.glb: material(s) {without} have no mesh", ExportWarning, stacklevel=3)
+    return not without
+
+
+def _write_atlas_images(tmp: Path, composed: _Composed, opts: _AtlasOptions) -> None:
+    """tex1/tex2 in ``opts.fmt``, and absorption.exr/coat.exr when some material has a coat."""
+    atlas = composed.texels
+    for k, t in (("tex1", atlas[..., :4]), ("tex2", atlas[..., 4:])):
+        if opts.fmt == "png":  # values already encoded by `transfer`: written as is, tagged with it
+            _write_png(tmp / f"{k}.png", t, bits=opts.bits, transfer="linear", intent=opts.transfer)
+        else:
+            imageio.write_exr(tmp / f"{k}.exr", t)
+    coat_atlas = composed.coat
+    if coat_atlas is not None:
+        imageio.write_exr(tmp / "absorption.exr", coat_atlas[..., :3], chromaticities="rec709")
+        zero = torch.zeros_like(coat_atlas[..., :1])
+        imageio.write_exr(tmp / "coat.exr", torch.cat([coat_atlas[..., 3:5], zero], -1))
+
+
+def _write_atlas_meshes(tmp: Path, mats: Sequence[Material], packing: A.Packing) -> list[Mesh]:
+    """Each material's mesh with its UVs moved into its rectangle, as ``meshes/<name>.obj``; returns them."""
+    meshes = []
+    for m, rect in zip(mats, packing.rects, strict=True):
+        if m.mesh is None:
+            continue
+        try:
+            uv = A.remap_uvs(m.mesh.uvs, rect, packing.size)
+        except A.AtlasError as err:
+            raise ExportError(f"material '{m.name}' mesh: {err}") from err
+        moved = Mesh.from_arrays(m.mesh.vertices.numpy(), m.mesh.faces.numpy(), uv.numpy(),
+                                 m.mesh.normals.numpy(), name=m.name)
+        (tmp / "meshes").mkdir(exist_ok=True)
+        save_mesh(moved, tmp / "meshes" / f"{m.name}.obj")
+        meshes.append(moved)
+    return meshes
+
+
 def export_atlas(
     materials, out, *, atlas_size: int | tuple[int, int] | None = None, gutter: int = 4, bits: int = 8,
     fmt: str = "png", transfer: str = "gamma2.2", force: bool = False, glb: bool = True,
@@ -318,133 +507,25 @@ def export_atlas(
         ExportError: bad inputs, ``out`` exists, atlas too small (with the size needed), unwritable output.
     """
     out = Path(out)
-    if fmt not in ("png", "exr"):
-        raise ExportError(f"fmt must be 'png' or 'exr', got {fmt!r}")
-    if bits not in (8, 16):
-        raise ExportError(f"bits must be 8 or 16, got {bits!r}")
-    if transfer not in ("gamma2.2", "srgb"):
-        raise ExportError(f"transfer must be 'gamma2.2' (Schüler) or 'srgb', got {transfer!r}")
-    if material_model not in MATERIAL_MODELS:
-        raise ExportError(f"material_model must be one of {list(MATERIAL_MODELS)}, got {material_model!r}")
-    _check_compensation(compensation)
-    if isinstance(texture_sets, str):
-        texture_sets = [texture_sets]
-    texture_sets = tuple(texture_sets or ())
-    unknown = [t for t in texture_sets if t not in TEXTURE_SETS]
-    if unknown:
-        raise ExportError(f"unknown texture set(s) {unknown}; choose from {list(TEXTURE_SETS)}")
+    opts = _atlas_options(fmt, bits, transfer, gutter, material_model, compensation, texture_sets)
     check_output(out, _input_folders(materials), force=force, error=ExportError, force_flag="force=True (--force)")
     mats = _materials(materials)
-    prepared = [_prepare(m) for m in mats]
-    tex, lin, coverage, coat = [], [], [], []
-    any_coat = any("absorption" in p or m.coat_ior is not None for m, p in zip(mats, prepared, strict=True))
-    for m, p in zip(mats, prepared, strict=True):
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            t1, t2 = A.encode_schuler(p, transfer)
-        for w in caught:
-            warnings.warn(f"material '{m.name}': {w.message}", ExportWarning, stacklevel=2)
-        tex.append(torch.cat([t1, t2], dim=-1))
-        mask = p.get("mask", torch.ones_like(p["roughness"]))
-        lin.append(torch.cat([p["albedo"], p["f0"], p["roughness"], mask], dim=-1))
-        cov = p.get("coverage")
-        if cov is None and "mask" in p:
-            cov = p["mask"]
-        coverage.append(None if cov is None else cov[..., 0] > 0)
-        if any_coat:
-            h, w = t1.shape[:2]
-            absorption = p.get("absorption", torch.zeros(h, w, 3))
-            has_coat = "absorption" in p or m.coat_ior is not None
-            ior = m.coat_ior if m.coat_ior is not None else (1.5 if has_coat else 1.0)
-            rough = m.coat_roughness if m.coat_roughness is not None else (0.1 if has_coat else 0.0)
-            if not 1.0 <= ior <= 3.0 or not 0.0 <= rough <= 1.0:
-                raise ExportError(f"material '{m.name}': coat_ior {ior} must lie in [1, 3] and coat_roughness "
-                                  f"{rough} in [0, 1]")
-            coat.append(torch.cat([absorption, torch.full((h, w, 1), ior), torch.full((h, w, 1), rough)], -1))
-    sizes = [(t.shape[1], t.shape[0]) for t in tex]
-    try:
-        packing = A.pack_rectangles(sizes, atlas_size, gutter)
-    except A.AtlasError as err:
-        raise ExportError(f"{out}: {err}") from err
-    atlas = A.compose(tex, packing, gutter, coverage)
-    lin_atlas = A.compose(lin, packing, gutter, coverage)
-    lin_maps = {"albedo": lin_atlas[..., 0:3], "f0": lin_atlas[..., 3:6], "roughness": lin_atlas[..., 6:7],
-                "mask": lin_atlas[..., 7:8]}
-    coat_atlas = A.compose(coat, packing, gutter, coverage) if any_coat else None
-    width, height = packing.size
-
-    sidecar = {
-        "format": ATLAS_FORMAT,
-        "layout": "schuler-2rgba",
-        "size": {"width": width, "height": height},
-        "gutter": gutter,
-        "transfer": transfer,
-        "storage": {"format": fmt, "bits": bits if fmt == "png" else 32},
-        "uv_convention": "u right, v up, (0,0) at the bottom-left of the image; texel (i, j) centre at "
-                         "u=(j+0.5)/W, v=1-(i+0.5)/H; rect x = column, y = row of its top-left texel",
-        "textures": {
-            "tex1": {"file": f"tex1.{fmt}", "channels": {
-                "R": "albedo.r", "G": "albedo.g", "B": "albedo.b", "A": "mask"},
-                "encoding": {"RGB": transfer, "A": "linear"}},
-            "tex2": {"file": f"tex2.{fmt}", "channels": {
-                "R": "f0.r", "G": "f0.g", "B": "f0.b", "A": "glossiness"},
-                "encoding": {"RGB": transfer, "A": "linear"},
-                "glossiness": "g in [0,1]; Blinn-Phong exponent e = 2^(12 g); roughness r = (2/(e+2))^(1/4)"},
-        },
-        "materials": [],
-    }
-    if any_coat:
-        sidecar["textures"]["absorption"] = {"file": "absorption.exr", "channels": {
-            "R": "absorption.r", "G": "absorption.g", "B": "absorption.b"}, "encoding": {"RGB": "linear float"},
-            "meaning": "Gotanda 2012 eq 3 alpha' (alpha*d for eq 2), >= 0"}
-        sidecar["textures"]["coat"] = {"file": "coat.exr", "channels": {
-            "R": "coat_ior", "G": "coat_roughness", "B": "reserved (0)"}, "encoding": {"RGB": "linear float"},
-            "meaning": "coat ior 1 and absorption 0 mean no coat"}
-    for m, rect in zip(mats, packing.rects, strict=True):
-        u0, v0, u1, v1 = A.rect_uv(rect, packing.size)
-        entry = {"name": m.name, "rect": {"x": rect.x, "y": rect.y, "w": rect.w, "h": rect.h},
-                 "uv": {"u_min": u0, "v_min": v0, "u_max": u1, "v_max": v1}}
-        if m.source:
-            entry["source"] = m.source
-        if m.mesh is not None:
-            entry["mesh"] = f"meshes/{m.name}.obj"
-        sidecar["materials"].append(entry)
-    if glb:
-        without = [m.name for m in mats if m.mesh is None]
-        glb = not without
-        if without and len(without) < len(mats):  # all without a mesh: nothing to put in a GLB, silently
-            warnings.warn(f"no atlas.glb: material(s) {without} have no mesh", ExportWarning, stacklevel=2)
-    gl_tex = gltf_textures(lin_maps, material_model, bits, compensation) if glb or texture_sets else None
+    enc = _encode_materials(mats, [_prepare(m) for m in mats], transfer)
+    composed = _compose_atlas(out, enc, atlas_size, gutter)
+    sidecar = _atlas_sidecar(mats, composed.packing, opts, enc.any_coat)
+    glb = glb and _all_have_meshes(mats)
+    lin_maps = composed.lin_maps
+    gl_tex = gltf_textures(lin_maps, material_model, bits, compensation) if glb or opts.texture_sets else None
     set_tex = gl_tex if material_model == "metallic-roughness" else None
 
     # -- write everything into a temp folder, then rename into place
     with atomic_folder(out, force=force, error=ExportError, force_flag="force=True (--force)") as tmp:
-        for k, t in (("tex1", atlas[..., :4]), ("tex2", atlas[..., 4:])):
-            if fmt == "png":  # values already encoded by `transfer`: written as is, tagged with it
-                _write_png(tmp / f"{k}.png", t, bits=bits, transfer="linear", intent=transfer)
-            else:
-                imageio.write_exr(tmp / f"{k}.exr", t)
-        if coat_atlas is not None:
-            imageio.write_exr(tmp / "absorption.exr", coat_atlas[..., :3], chromaticities="rec709")
-            zero = torch.zeros_like(coat_atlas[..., :1])
-            imageio.write_exr(tmp / "coat.exr", torch.cat([coat_atlas[..., 3:5], zero], -1))
-        if texture_sets:
-            written = write_texture_sets(tmp / "textures", lin_maps, texture_sets, bits, set_tex, compensation)
+        _write_atlas_images(tmp, composed, opts)
+        if opts.texture_sets:
+            written = write_texture_sets(tmp / "textures", lin_maps, opts.texture_sets, bits, set_tex, compensation)
             sidecar["texture_sets"] = {"folder": "textures", "files": written, "bits": bits,
                                        "layout": "same UVs as the atlas (docs/export.md, texture sets)"}
-        meshes = []
-        for m, rect in zip(mats, packing.rects, strict=True):
-            if m.mesh is None:
-                continue
-            try:
-                uv = A.remap_uvs(m.mesh.uvs, rect, packing.size)
-            except A.AtlasError as err:
-                raise ExportError(f"material '{m.name}' mesh: {err}") from err
-            moved = Mesh.from_arrays(m.mesh.vertices.numpy(), m.mesh.faces.numpy(), uv.numpy(),
-                                     m.mesh.normals.numpy(), name=m.name)
-            (tmp / "meshes").mkdir(exist_ok=True)
-            save_mesh(moved, tmp / "meshes" / f"{m.name}.obj")
-            meshes.append(moved)
+        meshes = _write_atlas_meshes(tmp, mats, composed.packing)
         if glb:
             sidecar["gltf"] = write_glb(tmp / "atlas.glb", meshes, lin_maps, material_model=material_model,
                                         bits=bits, textures=gl_tex, compensation=compensation)
@@ -1068,6 +1149,84 @@ def write_texture_sets(folder, maps: Mapping[str, Tensor], sets: Sequence[str] =
     return written
 
 
+class _GlbBuffer:
+    """The GLB's binary chunk with its bufferViews and accessors, each view 4-byte aligned."""
+
+    def __init__(self):
+        self.blob = bytearray()
+        self.views: list[dict] = []
+        self.accessors: list[dict] = []
+
+    def add_view(self, data: bytes, target: int | None = None) -> int:
+        while len(self.blob) % 4:
+            self.blob.append(0)
+        view = {"buffer": 0, "byteOffset": len(self.blob), "byteLength": len(data)}
+        if target is not None:
+            view["target"] = target
+        self.blob.extend(data)
+        self.views.append(view)
+        return len(self.views) - 1
+
+    def add_accessor(self, arr: np.ndarray, kind: str, ctype: int, target: int, minmax: bool = False) -> int:
+        acc = {"bufferView": self.add_view(arr.tobytes(), target), "componentType": ctype,
+               "count": int(arr.shape[0]), "type": kind}
+        if minmax:
+            acc["min"] = arr.min(0).tolist()
+            acc["max"] = arr.max(0).tolist()
+        self.accessors.append(acc)
+        return len(self.accessors) - 1
+
+
+def _glb_meshes(buf: _GlbBuffer, meshes: Sequence[Mesh]) -> tuple[list[dict], list[dict]]:
+    """glTF meshes and nodes of ``meshes``: rotated to Y-up, v flipped, their arrays appended to ``buf``."""
+    gl_meshes, nodes = [], []
+    for k, m in enumerate(meshes):
+        v = zup_to_yup(m.vertices.detach().cpu().double()).numpy().astype(np.float32)
+        n = zup_to_yup(m.normals.detach().cpu().double()).numpy().astype(np.float32)
+        uv = m.uvs.detach().cpu().numpy().astype(np.float32).copy()
+        uv[:, 1] = 1.0 - uv[:, 1]
+        idx = m.faces.cpu().numpy().astype(np.uint32).reshape(-1)
+        attrs = {"POSITION": buf.add_accessor(v, "VEC3", 5126, 34962, True),
+                 "NORMAL": buf.add_accessor(n, "VEC3", 5126, 34962),
+                 "TEXCOORD_0": buf.add_accessor(uv, "VEC2", 5126, 34962)}
+        ind = buf.add_accessor(idx[:, None], "SCALAR", 5125, 34963)
+        gl_meshes.append({"name": m.name or f"mesh{k}", "primitives": [{"attributes": attrs, "indices": ind,
+                                                                         "material": 0, "mode": 4}]})
+        nodes.append({"name": m.name or f"mesh{k}", "mesh": k})
+    return gl_meshes, nodes
+
+
+def _glb_material(textures: dict) -> dict:
+    """The one glTF material over the atlas textures (indices 0, 1 and, with the specular extension, 2)."""
+    alpha_mode = "MASK" if textures["alpha_mask"] else "OPAQUE"
+    material = {
+        "name": "schuler_atlas",
+        "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicRoughnessTexture": {"index": 1},
+                                 "metallicFactor": 1.0, "roughnessFactor": 1.0},
+        "alphaMode": alpha_mode,
+    }
+    if textures["specular"]:
+        material["extensions"] = {"KHR_materials_specular": {
+            "specularColorTexture": {"index": 2}, "specularColorFactor": [1.0 / GLTF_DIELECTRIC_F0] * 3,
+            "specularFactor": 1.0}}
+    if alpha_mode == "MASK":
+        material["alphaCutoff"] = 0.5
+    return material
+
+
+def _glb_bytes(gltf: dict, buf: _GlbBuffer) -> bytes:
+    """The GLB container: header, JSON chunk (space-padded), BIN chunk (zero-padded); sets ``gltf["buffers"]``."""
+    blob = buf.blob
+    while len(blob) % 4:
+        blob.append(0)
+    gltf["buffers"] = [{"byteLength": len(blob)}]
+    js = json.dumps(gltf, separators=(",", ":")).encode()
+    js += b" " * ((-len(js)) % 4)
+    total = 12 + 8 + len(js) + 8 + len(blob)
+    return (struct.pack("<III", 0x46546C67, 2, total) + struct.pack("<II", len(js), 0x4E4F534A) + js
+            + struct.pack("<II", len(blob), 0x004E4942) + bytes(blob))
+
+
 def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor], *,
               material_model: str = "metallic-roughness", bits: int = 8, textures: dict | None = None,
               compensation: str = "layering") -> dict:
@@ -1095,77 +1254,22 @@ def write_glb(path, meshes: Sequence[Mesh], maps: Mapping[str, Tensor], *,
     images = [textures["images"]["baseColor"], textures["images"]["metallicRoughness"]]
     if textures["specular"]:
         images.append(textures["images"]["specularColor"])
-    blob = bytearray()
-    views, accessors = [], []
-
-    def add_view(data: bytes, target: int | None = None) -> int:
-        while len(blob) % 4:
-            blob.append(0)
-        view = {"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)}
-        if target is not None:
-            view["target"] = target
-        blob.extend(data)
-        views.append(view)
-        return len(views) - 1
-
-    def add_accessor(arr: np.ndarray, kind: str, ctype: int, target: int, minmax: bool = False) -> int:
-        acc = {"bufferView": add_view(arr.tobytes(), target), "componentType": ctype, "count": int(arr.shape[0]),
-               "type": kind}
-        if minmax:
-            acc["min"] = arr.min(0).tolist()
-            acc["max"] = arr.max(0).tolist()
-        accessors.append(acc)
-        return len(accessors) - 1
-
-    gl_meshes, nodes = [], []
-    for k, m in enumerate(meshes):
-        v = zup_to_yup(m.vertices.detach().cpu().double()).numpy().astype(np.float32)
-        n = zup_to_yup(m.normals.detach().cpu().double()).numpy().astype(np.float32)
-        uv = m.uvs.detach().cpu().numpy().astype(np.float32).copy()
-        uv[:, 1] = 1.0 - uv[:, 1]
-        idx = m.faces.cpu().numpy().astype(np.uint32).reshape(-1)
-        attrs = {"POSITION": add_accessor(v, "VEC3", 5126, 34962, True),
-                 "NORMAL": add_accessor(n, "VEC3", 5126, 34962),
-                 "TEXCOORD_0": add_accessor(uv, "VEC2", 5126, 34962)}
-        ind = add_accessor(idx[:, None], "SCALAR", 5125, 34963)
-        gl_meshes.append({"name": m.name or f"mesh{k}", "primitives": [{"attributes": attrs, "indices": ind,
-                                                                         "material": 0, "mode": 4}]})
-        nodes.append({"name": m.name or f"mesh{k}", "mesh": k})
-    image_ids = [add_view(b) for b in images]
-    alpha_mode = "MASK" if textures["alpha_mask"] else "OPAQUE"
-    material = {
-        "name": "schuler_atlas",
-        "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicRoughnessTexture": {"index": 1},
-                                 "metallicFactor": 1.0, "roughnessFactor": 1.0},
-        "alphaMode": alpha_mode,
-    }
-    if textures["specular"]:
-        material["extensions"] = {"KHR_materials_specular": {
-            "specularColorTexture": {"index": 2}, "specularColorFactor": [1.0 / GLTF_DIELECTRIC_F0] * 3,
-            "specularFactor": 1.0}}
-    if alpha_mode == "MASK":
-        material["alphaCutoff"] = 0.5
+    buf = _GlbBuffer()
+    gl_meshes, nodes = _glb_meshes(buf, meshes)
+    image_ids = [buf.add_view(b) for b in images]
     gltf = {
         "asset": {"version": "2.0", "generator": "shadecap capture.export",
                   "extras": {"up_axis": "Y (the dataset's Z-up world rotated: (x, y, z) -> (x, z, -y))"}},
         "scene": 0, "scenes": [{"nodes": list(range(len(nodes)))}], "nodes": nodes, "meshes": gl_meshes,
-        "materials": [material],
+        "materials": [_glb_material(textures)],
         "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}],
         "images": [{"bufferView": i, "mimeType": "image/png"} for i in image_ids],
         "textures": [{"source": i, "sampler": 0} for i in range(len(image_ids))],
-        "accessors": accessors, "bufferViews": views,
+        "accessors": buf.accessors, "bufferViews": buf.views,
     }
     if textures["specular"]:
         gltf["extensionsUsed"] = ["KHR_materials_specular"]
-    while len(blob) % 4:
-        blob.append(0)
-    gltf["buffers"] = [{"byteLength": len(blob)}]
-    js = json.dumps(gltf, separators=(",", ":")).encode()
-    js += b" " * ((-len(js)) % 4)
-    total = 12 + 8 + len(js) + 8 + len(blob)
-    data = (struct.pack("<III", 0x46546C67, 2, total) + struct.pack("<II", len(js), 0x4E4F534A) + js
-            + struct.pack("<II", len(blob), 0x004E4942) + bytes(blob))
-    imageio.atomic_write_bytes(path, data)
+    imageio.atomic_write_bytes(path, _glb_bytes(gltf, buf))
     return {"file": path.name, "up_axis": "Y", "frame": "(x, y, z) dataset -> (x, z, -y) glTF",
             "bits": bits, "material_model": material_model, "compensation": textures["compensation"],
             "material": textures["doc"],
