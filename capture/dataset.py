@@ -35,6 +35,7 @@ import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -690,9 +691,11 @@ def _as_obj(x, file, fld) -> dict:
     return x
 
 
-def _warn(msgs: list[str], msg: str) -> None:
+def _warn(msgs: list[str], msg: str, stacklevel: int = 3) -> None:
+    """Collect ``msg`` and warn with it; the default stacklevel names the caller of the function calling this,
+    a helper of that function passes one more per level of nesting."""
     msgs.append(msg)
-    warnings.warn(DatasetWarning(msg), stacklevel=3)
+    warnings.warn(DatasetWarning(msg), stacklevel=stacklevel)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -730,6 +733,37 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
     root = dataset_root(path)
     scene = root / SCENE_FILE
     msgs: list[str] = []
+    doc = _read_scene(root, scene, msgs)
+    enc = _scene_encoding(scene, doc)
+    mesh = _load_scene_mesh(root, scene, doc, msgs)
+    views = _load_views(root, scene, doc, mesh, msgs)
+    _warn_inside(scene, mesh, views, msgs)
+    _warn_jpegs(scene, views, msgs)
+    _check_image_folder(root, scene, views)
+    if check_images:
+        _check_view_images(root, views, enc, msgs)
+
+    gt = None
+    if "gt" in doc and doc["gt"] is not None:
+        gt = _load_gt(root, scene, doc["gt"], msgs)
+    meta = doc.get("meta", {}) or {}
+    if not isinstance(meta, dict):
+        raise _err(scene, "meta", f"must be a JSON object, got {type(meta).__name__}")
+    return Dataset(root, mesh, str(Path(doc["mesh"]).as_posix()), views, enc.encoding, enc.bits, enc.saturation, gt,
+                   meta, msgs, psf_sigma=float(enc.psf_sigma))
+
+
+class _Encoding(NamedTuple):
+    """How a dataset's image files hold radiance: ``encoding``, sRGB ``bits``, clipping level, pixel filter."""
+
+    encoding: str
+    bits: int | None
+    saturation: float | int | None
+    psf_sigma: float
+
+
+def _read_scene(root: Path, scene: Path, msgs: list[str]) -> dict:
+    """``scene.json`` parsed, with its header (format, version) and required fields checked."""
     if not root.is_dir():
         raise _err(root, None, "dataset folder does not exist")
     if not scene.is_file():
@@ -756,8 +790,11 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
             raise _err(scene, key, "is missing", "see docs/dataset-format.md for the required fields")
     unknown = sorted(set(doc) - _TOP_KEYS)
     if unknown:
-        _warn(msgs, f"{scene}: ignoring unknown top-level field(s) {unknown}")
+        _warn(msgs, f"{scene}: ignoring unknown top-level field(s) {unknown}", stacklevel=4)
+    return doc
 
+
+def _scene_encoding(scene: Path, doc: Mapping) -> _Encoding:
     encoding = doc["encoding"]
     if encoding not in ENCODINGS:
         raise _err(scene, "encoding", f"must be one of {sorted(ENCODINGS)}, got {encoding!r}")
@@ -782,8 +819,10 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
     except ValueError as exc:
         raise _err(scene, "psf_sigma", str(exc), "measure it from a slanted edge, or leave it out for a sharp "
                    "camera (box filter)") from None
+    return _Encoding(encoding, bits, saturation, psf_sigma)
 
-    # mesh
+
+def _load_scene_mesh(root: Path, scene: Path, doc: Mapping, msgs: list[str]) -> Mesh:
     mesh_path = _relative_file(root, doc["mesh"], scene, "mesh")
     try:
         mesh = load_mesh(mesh_path)
@@ -792,71 +831,90 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
     n_degenerate = degenerate_faces(mesh.vertices, mesh.faces)
     if n_degenerate:
         _warn(msgs, f"{mesh_path}: {n_degenerate} of {len(mesh.faces)} faces have zero area (degenerate triangles: "
-              f"no surface, no normal); remove them (e.g. Blender: Mesh > Clean Up > Degenerate Dissolve)")
+              f"no surface, no normal); remove them (e.g. Blender: Mesh > Clean Up > Degenerate Dissolve)",
+              stacklevel=4)
+    return mesh
 
-    # views
-    entries = _as_list(doc["images"], scene, "images")
-    views: list[View] = []
-    seen: dict[str, int] = {}
-    for i, e in enumerate(entries):
-        e = _as_obj(e, scene, f"images[{i}]")
-        for key in ("file", "camera", "lights", "exposure"):
-            if key not in e:
-                raise _err(scene, f"images[{i}].{key}", "is missing",
-                           'add it (e.g. "exposure": 1.0)' if key == "exposure" else "see docs/dataset-format.md")
-        extra = sorted(set(e) - _VIEW_KEYS)
-        if extra:
-            _warn(msgs, f"{scene}: images[{i}]: ignoring unknown field(s) {extra}")
-        _relative_file(root, e["file"], scene, f"images[{i}].file")
-        key = os.path.normpath(e["file"])
-        if key in seen:
-            raise _err(scene, f"images[{i}].file", f"'{e['file']}' is listed twice (also images[{seen[key]}])")
-        seen[key] = i
+
+def _view_lights(scene: Path, i: int, e: Mapping, cam: Camera) -> list:
+    """The lights of ``images[i]``, in the world frame, each level below :data:`MAX_LIGHT`."""
+    lights_raw = _as_list(e["lights"], scene, f"images[{i}].lights")
+    lights = []
+    for j, d in enumerate(lights_raw):
         try:
-            cam = Camera.from_dict(e["camera"])
-        except CameraError as exc:
-            raise _err(scene, f"images[{i}].camera", str(exc)) from None
-        lights_raw = _as_list(e["lights"], scene, f"images[{i}].lights")
-        lights = []
-        for j, d in enumerate(lights_raw):
-            try:
-                d = light_to_world(d, cam)
-                lights.append(light_from_dict(d))
-            except LightError as exc:
-                raise _err(scene, f"images[{i}].lights[{j}]", str(exc)) from None
-            for key in _LIGHT_LEVELS[d["type"]]:
-                level = float(np.abs(np.asarray(d[key], dtype=np.float64)).max())
-                if level >= MAX_LIGHT:
-                    raise _err(scene, f"images[{i}].lights[{j}].{key}", f"{level:.3g} is beyond the {MAX_LIGHT:.0e} "
-                               f"shadecap computes with (float32 radiometry overflows)", "give the lights in smaller "
-                               "units and scale the exposure instead (pixel = exposure · radiance)")
-        exposure = _number(e["exposure"], scene, f"images[{i}].exposure", positive=True)
-        if not EXPOSURE_RANGE[0] < exposure < EXPOSURE_RANGE[1]:
-            raise _err(scene, f"images[{i}].exposure", f"{exposure:.3g} is outside ({EXPOSURE_RANGE[0]:.0e}, "
-                       f"{EXPOSURE_RANGE[1]:.0e}): the radiances (pixel / exposure) would overflow or vanish in "
-                       "float32",
-                       "rescale the exposure together with the light intensities")
-        name = e.get("name", "")
-        if not isinstance(name, str):
-            raise _err(scene, f"images[{i}].name", f"must be a string, got {name!r}")
-        sees, why = camera_sees_mesh(cam, mesh.vertices, mesh.faces)
-        if not sees:
-            raise _err(scene, f"images[{i}].camera", f"the camera does not see the mesh: {why}",
-                       "check R and t (world-to-camera, OpenCV: x right, y down, z forward) and the mesh units")
-        mask = e.get("mask") or ""
-        if mask:
-            _relative_file(root, mask, scene, f"images[{i}].mask")
-            mask = str(Path(mask).as_posix())
-        views.append(View(cam, lights, exposure, str(Path(e["file"]).as_posix()), name, mask))
-    _warn_inside(scene, mesh, views, msgs)
+            d = light_to_world(d, cam)
+            lights.append(light_from_dict(d))
+        except LightError as exc:
+            raise _err(scene, f"images[{i}].lights[{j}]", str(exc)) from None
+        for key in _LIGHT_LEVELS[d["type"]]:
+            level = float(np.abs(np.asarray(d[key], dtype=np.float64)).max())
+            if level >= MAX_LIGHT:
+                raise _err(scene, f"images[{i}].lights[{j}].{key}", f"{level:.3g} is beyond the {MAX_LIGHT:.0e} "
+                           f"shadecap computes with (float32 radiometry overflows)", "give the lights in smaller "
+                           "units and scale the exposure instead (pixel = exposure · radiance)")
+    return lights
+
+
+def _load_view(root: Path, scene: Path, i: int, e, mesh: Mesh, seen: dict[str, int], msgs: list[str]) -> View:
+    """Entry ``images[i]`` validated into a :class:`View`; ``seen`` (normalised file → index) catches repeats."""
+    e = _as_obj(e, scene, f"images[{i}]")
+    for key in ("file", "camera", "lights", "exposure"):
+        if key not in e:
+            raise _err(scene, f"images[{i}].{key}", "is missing",
+                       'add it (e.g. "exposure": 1.0)' if key == "exposure" else "see docs/dataset-format.md")
+    extra = sorted(set(e) - _VIEW_KEYS)
+    if extra:  # stacklevel 5: through _load_views, attributed to load_dataset's caller
+        _warn(msgs, f"{scene}: images[{i}]: ignoring unknown field(s) {extra}", stacklevel=5)
+    _relative_file(root, e["file"], scene, f"images[{i}].file")
+    key = os.path.normpath(e["file"])
+    if key in seen:
+        raise _err(scene, f"images[{i}].file", f"'{e['file']}' is listed twice (also images[{seen[key]}])")
+    seen[key] = i
+    try:
+        cam = Camera.from_dict(e["camera"])
+    except CameraError as exc:
+        raise _err(scene, f"images[{i}].camera", str(exc)) from None
+    lights = _view_lights(scene, i, e, cam)
+    exposure = _number(e["exposure"], scene, f"images[{i}].exposure", positive=True)
+    if not EXPOSURE_RANGE[0] < exposure < EXPOSURE_RANGE[1]:
+        raise _err(scene, f"images[{i}].exposure", f"{exposure:.3g} is outside ({EXPOSURE_RANGE[0]:.0e}, "
+                   f"{EXPOSURE_RANGE[1]:.0e}): the radiances (pixel / exposure) would overflow or vanish in "
+                   "float32",
+                   "rescale the exposure together with the light intensities")
+    name = e.get("name", "")
+    if not isinstance(name, str):
+        raise _err(scene, f"images[{i}].name", f"must be a string, got {name!r}")
+    sees, why = camera_sees_mesh(cam, mesh.vertices, mesh.faces)
+    if not sees:
+        raise _err(scene, f"images[{i}].camera", f"the camera does not see the mesh: {why}",
+                   "check R and t (world-to-camera, OpenCV: x right, y down, z forward) and the mesh units")
+    mask = e.get("mask") or ""
+    if mask:
+        _relative_file(root, mask, scene, f"images[{i}].mask")
+        mask = str(Path(mask).as_posix())
+    return View(cam, lights, exposure, str(Path(e["file"]).as_posix()), name, mask)
+
+
+def _load_views(root: Path, scene: Path, doc: Mapping, mesh: Mesh, msgs: list[str]) -> list[View]:
+    entries = _as_list(doc["images"], scene, "images")
+    seen: dict[str, int] = {}
+    views: list[View] = []
+    for i, e in enumerate(entries):  # a loop: a comprehension frame would shift _load_view's warning stacklevel
+        views.append(_load_view(root, scene, i, e, mesh, seen, msgs))
+    return views
+
+
+def _warn_jpegs(scene: Path, views: Sequence[View], msgs: list[str]) -> None:
     jpegs = [v.file for v in views if Path(v.file).suffix.lower() in JPEG_SUFFIXES]
     if jpegs:
         _warn(msgs, f"{scene}: {len(jpegs)} image(s) are JPEG ({', '.join(jpegs[:3])}{' ...' if len(jpegs) > 3 else ''}"
               "): a camera's JPEG is not pure sRGB (its maker's tone curve, white balance, sharpening, noise "
               "reduction and compression change the values), so the recovered albedo is approximate; for "
-              "measurements convert the RAW files to linear 16-bit TIFF or EXR (docs/importing.md)")
+              "measurements convert the RAW files to linear 16-bit TIFF or EXR (docs/importing.md)", stacklevel=4)
 
-    # image count: the images/ folder holds exactly the listed images
+
+def _check_image_folder(root: Path, scene: Path, views: Sequence[View]) -> None:
+    """The ``images/`` folder, when there is one, holds exactly the listed images (and masks)."""
     img_dir = root / IMAGE_DIR
     if img_dir.is_dir():
         on_disk = sorted(f"{IMAGE_DIR}/{f.name}" for f in img_dir.iterdir()
@@ -868,26 +926,19 @@ def load_dataset(path, *, check_images: bool = True) -> Dataset:
                        f"file(s); not listed: {unlisted[:5]}{' ...' if len(unlisted) > 5 else ''}",
                        "add an entry for each image or remove the extra files")
 
-    if check_images:
-        for i, view in enumerate(views):
-            _, bad, alpha = _read_view_image(root, view, i, encoding, bits)
-            mask = _combine_masks(alpha, _read_view_mask(root, view, i))
-            if mask is not None and not bool(mask.any()):
-                _warn(msgs, f"{root / (view.mask or view.file)}: images[{i}]: the mask excludes every pixel; the view "
-                      "adds nothing to the fit (check the mask's polarity: nonzero = the object)")
-            if bad:
-                H, W = view.camera.height, view.camera.width
-                _warn(msgs, f"{root / view.file}: {bad} of {H * W} pixel(s) are NaN or inf; they are kept and the "
-                      f"observation stage drops them")
 
-    gt = None
-    if "gt" in doc and doc["gt"] is not None:
-        gt = _load_gt(root, scene, doc["gt"], msgs)
-    meta = doc.get("meta", {}) or {}
-    if not isinstance(meta, dict):
-        raise _err(scene, "meta", f"must be a JSON object, got {type(meta).__name__}")
-    return Dataset(root, mesh, str(Path(doc["mesh"]).as_posix()), views, encoding, bits, saturation, gt, meta, msgs,
-                   psf_sigma=float(psf_sigma))
+def _check_view_images(root: Path, views: Sequence[View], enc: _Encoding, msgs: list[str]) -> None:
+    """Read every image and mask: errors for unusable files, warnings for empty masks and non-finite pixels."""
+    for i, view in enumerate(views):
+        _, bad, alpha = _read_view_image(root, view, i, enc.encoding, enc.bits)
+        mask = _combine_masks(alpha, _read_view_mask(root, view, i))
+        if mask is not None and not bool(mask.any()):
+            _warn(msgs, f"{root / (view.mask or view.file)}: images[{i}]: the mask excludes every pixel; the view "
+                  "adds nothing to the fit (check the mask's polarity: nonzero = the object)", stacklevel=4)
+        if bad:
+            H, W = view.camera.height, view.camera.width
+            _warn(msgs, f"{root / view.file}: {bad} of {H * W} pixel(s) are NaN or inf; they are kept and the "
+                  f"observation stage drops them", stacklevel=4)
 
 
 def _load_gt(root: Path, scene: Path, g, msgs: list[str]) -> GroundTruth:
