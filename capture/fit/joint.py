@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -209,6 +210,241 @@ class _SharingPrior:
 JOINT_ATTEMPTS = 12
 
 
+class _JointData:
+    """The data term of :func:`refine_joint`: the photos' pixels through the pixel operator (``footprints``), or one
+    sample per pixel centre reading the texels through the sampling operator (``sampling``): its cost, its
+    linearisation, normal equations and matrix-free Gauss-Newton product."""
+
+    def __init__(self, model: Model, obs: Observations, layout: Layout, groups, T: int, *, sampling: str, footprints,
+                 loss: str, delta: float):
+        if sampling == "bilinear":
+            if obs.bilinear_index is None:
+                raise SolverError("joint bilinear refinement needs observations built with bilinear=True")
+            idx, bw = obs.bilinear_index, obs.bilinear_weight.to(ACC)
+        else:
+            idx, bw = obs.texel[:, None], torch.ones(obs.n_samples, 1, dtype=ACC, device=obs.device)
+        self.model, self.obs, self.layout, self.groups, self.loss, self.delta = model, obs, layout, groups, loss, delta
+        self.T, self.P = T, layout.P
+        self.pix = pixel_operator(footprints, T) if footprints is not None else None
+        self.y = self.pix.y if self.pix is not None else obs.radiance.to(ACC)
+        self.n_res = float(3 * self.pix.R) if self.pix is not None else float(3 * obs.weight.to(ACC).sum())
+        # the sampling operator as sparse CSR matrices (K non-zeros per row): per-sample values are
+        # S_op @ x, the transpose scatters back. Measured on the default scene (204 000 samples, 65 536
+        # texels, P = 7, 2 threads): 4.9 ms and 2.6 ms against 112 ms and 28 ms for gather + weighted sum
+        # and K index_adds
+        if self.pix is None:
+            self.S_op, self.S_t = sampling_operator(idx, bw, T)
+            self.S_sq_t = sampling_operator(idx, bw.square(), T, forward=False)[1]
+
+    def gather(self, x: Tensor) -> Tensor:
+        """``[T, P]`` → per-sample ``[S, P]``."""
+        return self.S_op @ x
+
+    def scatter(self, g: Tensor) -> Tensor:
+        """Per-sample ``[S, P]`` → ``[T, P]``."""
+        return self.S_t @ g
+
+    def cost(self, th: Tensor) -> float:
+        """The data cost of θ ``[T, P]``."""
+        with torch.no_grad():
+            canon = self.layout.canonical(th)
+            if self.pix is not None:
+                return float(robust_rho(self.y - self.pix.predict(self.model, self.layout, canon), self.loss,
+                                        self.delta).sum())
+            pred = self.obs.predict(self.model, self.layout.split(self.gather(canon).to(self.obs.dtype)))
+            return weighted_cost(self.obs, pred, self.loss, self.delta)
+
+    def linearise(self, canon: Tensor) -> tuple[Tensor, Tensor]:
+        """Residuals and Jacobian wrt the canonical parameters ``canon [T, P]`` (per sample, or a
+        :class:`PixelJacobian`)."""
+        if self.pix is not None:
+            pred, J = self.pix.linearise(self.model, self.layout, canon, self.groups)       # J: a PixelJacobian
+        else:
+            pred, J = jacobian(self.model, self.layout, self.obs, self.gather(canon), self.groups, canonical=True)
+        return self.y - pred, J
+
+    def normal(self, J, r: Tensor, dp: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """IRLS weights of the residuals ``r``, the descent gradient JᵀWr in θ ``[T, P]`` and the exact per-texel
+        blocks ``[T, P, P]`` (canonical)."""
+        if self.pix is not None:
+            w = irls_weights(r, self.loss, self.delta)                                       # [R, 3]
+            g, B = self.pix.normal(J, w, w * r)                                        # exact per-texel blocks
+            return w, g * dp, B
+        T, P = self.T, self.P
+        w = self.obs.weight.to(ACC)[:, None] * irls_weights(r, self.loss, self.delta)      # [S, 3]
+        g = self.scatter(torch.einsum("scp,sc->sp", J, w * r)) * dp                  # JᵀWr in θ
+        JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)
+        B = (self.S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)             # Σ_s w_sk² J_sᵀWJ_s
+        return w, g, B
+
+    def matvec(self, v: Tensor, dp: Tensor, J, w: Tensor) -> Tensor:
+        """The data term's Gauss-Newton product with ``v [T, P]`` in θ."""
+        if self.pix is not None:
+            return self.pix.apply_t(J, w * self.pix.apply(J, v * dp)) * dp
+        # J_sᵀ W_s J_s u_s as two batched products (bmm: 5.4 ms against 9.4 ms for einsum, S = 204 000)
+        u = self.gather(v * dp)                                                # [S, P]
+        ju = torch.bmm(J, u[:, :, None])[..., 0] * w                       # [S, 3]
+        return self.scatter(torch.bmm(ju[:, None, :], J)[:, 0]) * dp
+
+
+def _prior_names(model: Model, layout: Layout, sharing: float, sharing_params: Sequence[str] | None) -> list[str]:
+    """The parameters of :func:`refine_joint`'s neighbour prior (``sharing_params``, default: all), checked."""
+    if not (sharing >= 0 and math.isfinite(sharing)):
+        raise SolverError(f"sharing must be a finite weight ≥ 0, got {sharing!r}")
+    names = list(sharing_params) if sharing_params is not None else [s_.name for s_ in layout.specs]
+    unknown = [n for n in names if n not in {s.name for s in layout.specs}]
+    if unknown:
+        raise SolverError(f"sharing_params {unknown} are not parameters of model '{model.name}' "
+                          f"({[s.name for s in layout.specs]})")
+    return names
+
+
+def _observed(data: _JointData, obs: Observations, sampling: str, theta: Tensor) -> Tensor:
+    """``[T]`` bool: the texels the data term reads, those the neighbour prior links."""
+    if data.pix is not None:
+        return data.pix.observed()
+    if sampling == "bilinear":
+        return obs.footprint()
+    observed = torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
+    observed[obs.texel] = True
+    return observed
+
+
+def _adaptive_names(model: Model, layout: Layout, noise_adaptive: Sequence[str], names: Sequence[str]) -> list[str]:
+    """The parameters of ``noise_adaptive`` (checked) that are in the prior's ``names``."""
+    bad = [n for n in noise_adaptive if n not in {s_.name for s_ in layout.specs}]
+    if bad:
+        raise SolverError(f"noise_adaptive {bad} are not parameters of model '{model.name}' "
+                          f"({[s_.name for s_ in layout.specs]})")
+    return [n for n in noise_adaptive if n in names]
+
+
+class _NoiseUnits:
+    """The prior units that follow the photos' noise (``noise_adaptive`` of :func:`refine_joint`)."""
+
+    def __init__(self, prior: _SharingPrior, names: Sequence[str], obs: Observations, noise):
+        self.prior, self.names, self.noise = prior, list(names), noise
+        self.base = {n: float(prior.thr[prior.col_names.index(n)]) for n in self.names}
+        self.ratios: list[float] = []
+        self.image_ratio = photo_noise_ratio(obs, noise)
+
+    def update(self, r: Tensor, y: Tensor) -> None:
+        """Shrink the units by the noise ratio of the residuals ``r`` of the radiance ``y``."""
+        # the photos' noise against the noise model, from the residuals of the bilinear fit so far (at
+        # it = 0 they still hold the sharing's misfit) and, where the observations carry image-space
+        # residuals, at least the noise measured there; the adaptive units shrink with it
+        ratio = max(self.image_ratio or 0.0, float((r / noise_sigma(y, self.noise)).square().mean(-1).median()))
+        self.prior.set_units({n: self.base[n] / max(1.0, ratio) for n in self.names})
+        self.ratios.append(ratio)
+
+    def units(self) -> dict[str, float]:
+        return {n: float(self.prior.thr[self.prior.col_names.index(n)]) for n in self.names}
+
+
+def _calibrate(prior: _SharingPrior, B: Tensor, sharing: float) -> None:
+    """Set the prior's μ (and the anchor's ν) from the data blocks ``B [T, P, P]`` (canonical)."""
+    # μ in units of the data term: its curvature for a one-threshold change of a material
+    # parameter in a typical (median) observed texel
+    dc = torch.diagonal(B, dim1=-2, dim2=-1)[:, prior.cols] * prior.thr.square()
+    ref = dc[dc.sum(-1) > 0]
+    prior.mu = sharing * (float(ref[:, prior.calibrate].median(0).values.mean()) if ref.numel() else 0.0)
+    prior.nu = prior.anchor_weight * prior.mu / sharing
+
+
+@dataclass
+class _Normal:
+    """One linearisation of :func:`refine_joint`: the normal equations in θ, data + prior — gradient ``g [T, P]``,
+    per-texel blocks ``B [T, P, P]`` (the preconditioner), damping diagonal ``diag [T, P]``, ``live`` texels — and
+    their matrix-free product."""
+
+    data: _JointData
+    prior: _SharingPrior | None
+    dp: Tensor
+    J: object
+    w: Tensor
+    g: Tensor
+    B: Tensor
+    diag: Tensor
+    live: Tensor
+
+    @classmethod
+    def of(cls, data: _JointData, prior: _SharingPrior | None, canon: Tensor, dp: Tensor, J, w: Tensor, g: Tensor,
+           B: Tensor) -> _Normal:
+        """From the data term's weights, gradient (θ) and blocks (canonical), adding the prior's."""
+        if prior is not None:
+            pg, pdiag = prior.linearise(canon, dp)
+            g = g + pg
+        B = B * dp[:, :, None] * dp[:, None, :]
+        diag = torch.diagonal(B, dim1=-2, dim2=-1).clone()
+        if prior is not None:
+            B = B + torch.diag_embed(pdiag)
+        live = diag.sum(-1) > 0
+        diag = diag + 1e-9 * diag.mean(-1, keepdim=True).clamp_min(1e-30)
+        return cls(data, prior, dp, J, w, g, B, diag, live)
+
+    def matvec(self, v: Tensor, lam: float) -> Tensor:
+        """The damped product with ``v [T, P]``; identity on the texels that are not live."""
+        out = self.data.matvec(v, self.dp, self.J, self.w)
+        if self.prior is not None:
+            out = out + self.prior.matvec(v, self.dp)
+        return torch.where(self.live[:, None], out + lam * self.diag * v, v)
+
+
+def _pcg(system: _Normal, lam: float, rhs: Tensor, Minv: Tensor, iterations: int) -> Tensor:
+    """Preconditioned conjugate gradients on ``system`` damped by ``lam`` from 0, with the per-texel block inverses
+    ``Minv [T, P, P]``: at most ``iterations`` products, stopped early on a non-positive curvature or a residual
+    reduced by 1e-20."""
+    x = torch.zeros_like(rhs)
+    res = rhs.clone()
+    z = torch.bmm(Minv, res[:, :, None])[..., 0]
+    d = z.clone()
+    rz = float((res * z).sum())
+    rz0 = rz
+    for _ in range(iterations):
+        Ad = system.matvec(d, lam)
+        dAd = float((d * Ad).sum())
+        if not dAd > 0:
+            break
+        a = rz / dAd
+        x = x + a * d
+        res = res - a * Ad
+        z = torch.bmm(Minv, res[:, :, None])[..., 0]
+        rz_new = float((res * z).sum())
+        if rz_new <= 1e-20 * rz0:
+            break
+        d = z + (rz_new / rz) * d
+        rz = rz_new
+    return x
+
+
+def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, total_of: Callable[[Tensor], float],
+                 cg_iterations: int, accepted: list[bool]) -> tuple[Tensor, float, float]:
+    """Trial steps of one outer iteration of :func:`refine_joint` until one lowers the total cost: each solves the
+    damped system (:func:`_pcg`), clamps it to the trust region and is kept when it lowers the cost (λ / 3), else λ
+    grows ×4. Appends each attempt's outcome to ``accepted``; returns ``(theta, cost, lam)``."""
+    eye = torch.eye(theta.shape[1], dtype=ACC, device=theta.device)
+    # up to JOINT_ATTEMPTS damping increases (×4 each) before the step is given up: after a failed outer
+    # iteration the loop stops, so 4 attempts (λ ≤ 0.064) ended the refinement before its first step on the
+    # small fixed-rig scene
+    for _attempt in range(JOINT_ATTEMPTS):
+        M = system.B + lam * torch.diag_embed(system.diag)
+        M = torch.where(system.live[:, None, None], M, eye)
+        Minv, _ = torch.linalg.inv_ex(M)
+        rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))
+        x = _pcg(system, lam, rhs, Minv, cg_iterations)
+        x = x.clamp(-MAX_STEP, MAX_STEP)
+        trial = theta + x
+        new_cost = total_of(trial)
+        if new_cost < cost:
+            theta, cost = trial, new_cost
+            lam = max(lam / 3, 1e-9)
+            accepted.append(True)
+            break
+        lam *= 4
+        accepted.append(False)
+    return theta, cost, lam
+
+
 def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor, groups, *, loss: str, delta: float,
                  iterations: int = 4, cg_iterations: int = 25, sampling: str = "bilinear",
                  sharing: float = 0.0, sharing_params: Sequence[str] | None = None, sharing_delta: float = 0.3,
@@ -289,184 +525,50 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     if not (anchor_weight >= 0 and math.isfinite(anchor_weight) and anchor_delta > 0 and math.isfinite(anchor_delta)):
         raise SolverError(f"anchor_weight must be a finite weight ≥ 0 and anchor_delta a finite scale > 0, got "
                           f"{anchor_weight!r}, {anchor_delta!r}")
-    if sampling == "bilinear":
-        if obs.bilinear_index is None:
-            raise SolverError("joint bilinear refinement needs observations built with bilinear=True")
-        idx, bw = obs.bilinear_index, obs.bilinear_weight.to(ACC)
-    else:
-        idx, bw = obs.texel[:, None], torch.ones(obs.n_samples, 1, dtype=ACC, device=obs.device)
-    T, P = theta.shape
-    pix = pixel_operator(footprints, T) if footprints is not None else None
-    y = pix.y if pix is not None else obs.radiance.to(ACC)
-    n_res = float(3 * pix.R) if pix is not None else float(3 * obs.weight.to(ACC).sum())
-    eye = torch.eye(P, dtype=ACC, device=theta.device)
-
-    # the sampling operator as sparse CSR matrices (K non-zeros per row): per-sample values are
-    # S_op @ x, the transpose scatters back. Measured on the default scene (204 000 samples, 65 536
-    # texels, P = 7, 2 threads): 4.9 ms and 2.6 ms against 112 ms and 28 ms for gather + weighted sum
-    # and K index_adds
-    if pix is None:
-        S_op, S_t = sampling_operator(idx, bw, T)
-        S_sq_t = sampling_operator(idx, bw.square(), T, forward=False)[1]
-
-    def gather(x):                                  # [T, P] → per-sample [S, P]
-        return S_op @ x
-
-    def scatter(g):                                 # per-sample [S, P] → [T, P]
-        return S_t @ g
-
-    canon_of = layout.canonical
-
-    def cost_of(th):
-        with torch.no_grad():
-            if pix is not None:
-                return float(robust_rho(y - pix.predict(model, layout, canon_of(th)), loss, delta).sum())
-            return weighted_cost(obs, obs.predict(model, layout.split(gather(canon_of(th)).to(obs.dtype))), loss,
-                                  delta)
-
-    if not (sharing >= 0 and math.isfinite(sharing)):
-        raise SolverError(f"sharing must be a finite weight ≥ 0, got {sharing!r}")
-    names = list(sharing_params) if sharing_params is not None else [s_.name for s_ in layout.specs]
-    unknown = [n for n in names if n not in {s.name for s in layout.specs}]
-    if unknown:
-        raise SolverError(f"sharing_params {unknown} are not parameters of model '{model.name}' "
-                          f"({[s.name for s in layout.specs]})")
+    data = _JointData(model, obs, layout, groups, theta.shape[0], sampling=sampling, footprints=footprints, loss=loss,
+                      delta=delta)
+    names = _prior_names(model, layout, sharing, sharing_params)
     prior = None
-    if sharing > 0:
-        H, W = obs.map_size
-        if pix is not None:
-            observed = pix.observed()
-        elif sampling == "bilinear":
-            observed = obs.footprint()
-        else:
-            observed = torch.zeros(T, dtype=torch.bool, device=theta.device)
-            observed[obs.texel] = True
-        if names:
-            prior = _SharingPrior(layout, names, H, W, observed, sharing_delta)
-            if anchor_weight > 0:
-                prior.set_anchor(shared_default(layout), canon_of(theta) if anchor_target is None else anchor_target,
-                                 anchor_weight, anchor_delta)
-    bad = [n for n in noise_adaptive if n not in {s_.name for s_ in layout.specs}]
-    if bad:
-        raise SolverError(f"noise_adaptive {bad} are not parameters of model '{model.name}' "
-                          f"({[s_.name for s_ in layout.specs]})")
-    adapt = [n for n in noise_adaptive if n in names] if prior is not None else []
-    base_units = {n: float(prior.thr[prior.col_names.index(n)]) for n in adapt}
-    noise_ratios: list[float] = []
+    if sharing > 0 and names:
+        prior = _SharingPrior(layout, names, *obs.map_size, _observed(data, obs, sampling, theta), sharing_delta)
+        if anchor_weight > 0:
+            prior.set_anchor(shared_default(layout),
+                             layout.canonical(theta) if anchor_target is None else anchor_target,
+                             anchor_weight, anchor_delta)
+    adapt = _adaptive_names(model, layout, noise_adaptive, names if prior is not None else [])
+    units = _NoiseUnits(prior, adapt, obs, noise) if adapt else None
 
     def total_of(th):
-        c = cost_of(th)
-        return c + (prior.energy(canon_of(th)) if prior is not None else 0.0)
+        c = data.cost(th)
+        return c + (prior.energy(layout.canonical(th)) if prior is not None else 0.0)
 
-    image_ratio = photo_noise_ratio(obs, noise) if adapt else None
     lam = 1e-3
     cost = total_of(theta)
-    history, accepted = [cost / n_res], []
+    history, accepted = [cost / data.n_res], []
     for it in range(iterations):
         with torch.no_grad():
-            canon = canon_of(theta)
+            canon = layout.canonical(theta)
             dp = layout.dcanonical(theta)
-            if pix is not None:
-                pred, J = pix.linearise(model, layout, canon, groups)       # J: a PixelJacobian
-            else:
-                pred, J = jacobian(model, layout, obs, gather(canon), groups, canonical=True)
-            r = y - pred
-            if prior is not None and adapt and it >= 1:
-                # the photos' noise against the noise model, from the residuals of the bilinear fit so far (at
-                # it = 0 they still hold the sharing's misfit) and, where the observations carry image-space
-                # residuals, at least the noise measured there; the adaptive units shrink with it
-                ratio = max(image_ratio or 0.0, float((r / noise_sigma(y, noise)).square().mean(-1).median()))
-                prior.set_units({n: base_units[n] / max(1.0, ratio) for n in adapt})
-                noise_ratios.append(ratio)
+            r, J = data.linearise(canon)
+            if units is not None and it >= 1:
+                units.update(r, data.y)
                 cost = total_of(theta)
-            if pix is not None:
-                w = irls_weights(r, loss, delta)                                             # [R, 3]
-                g, B = pix.normal(J, w, w * r)                                        # exact per-texel blocks
-                g = g * dp
-            else:
-                w = obs.weight.to(ACC)[:, None] * irls_weights(r, loss, delta)                # [S, 3]
-                g = scatter(torch.einsum("scp,sc->sp", J, w * r)) * dp                  # JᵀWr in θ
-                JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)
-                B = (S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)             # Σ_s w_sk² J_sᵀWJ_s
-                del JWJ
-            if prior is not None:
-                if it == 0:
-                    # μ in units of the data term: its curvature for a one-threshold change of a material
-                    # parameter in a typical (median) observed texel
-                    dc = torch.diagonal(B, dim1=-2, dim2=-1)[:, prior.cols] * prior.thr.square()
-                    ref = dc[dc.sum(-1) > 0]
-                    prior.mu = sharing * (float(ref[:, prior.calibrate].median(0).values.mean())
-                                          if ref.numel() else 0.0)
-                    prior.nu = prior.anchor_weight * prior.mu / sharing
-                    cost = total_of(theta)
-                    history[0] = cost / n_res
-                pg, pdiag = prior.linearise(canon, dp)
-                g = g + pg
-            B = B * dp[:, :, None] * dp[:, None, :]
-            diag = torch.diagonal(B, dim1=-2, dim2=-1).clone()
-            if prior is not None:
-                B = B + torch.diag_embed(pdiag)
-            live = diag.sum(-1) > 0
-            diag = diag + 1e-9 * diag.mean(-1, keepdim=True).clamp_min(1e-30)
-
-            def matvec(v, lam_, dp=dp, J=J, w=w, live=live, diag=diag):
-                if pix is not None:
-                    out = pix.apply_t(J, w * pix.apply(J, v * dp)) * dp
-                else:
-                    # J_sᵀ W_s J_s u_s as two batched products (bmm: 5.4 ms against 9.4 ms for einsum, S = 204 000)
-                    u = gather(v * dp)                                                # [S, P]
-                    ju = torch.bmm(J, u[:, :, None])[..., 0] * w                       # [S, 3]
-                    out = scatter(torch.bmm(ju[:, None, :], J)[:, 0]) * dp
-                if prior is not None:
-                    out = out + prior.matvec(v, dp)
-                return torch.where(live[:, None], out + lam_ * diag * v, v)
-
-            # up to JOINT_ATTEMPTS damping increases (×4 each) before the step is given up: after a failed outer
-            # iteration the loop stops, so 4 attempts (λ ≤ 0.064) ended the refinement before its first step on the
-            # small fixed-rig scene
-            for _attempt in range(JOINT_ATTEMPTS):
-                M = B + lam * torch.diag_embed(diag)
-                M = torch.where(live[:, None, None], M, eye)
-                Minv, _ = torch.linalg.inv_ex(M)
-                rhs = torch.where(live[:, None], g, torch.zeros_like(g))
-                x = torch.zeros_like(rhs)
-                res = rhs.clone()
-                z = torch.bmm(Minv, res[:, :, None])[..., 0]
-                d = z.clone()
-                rz = float((res * z).sum())
-                rz0 = rz
-                for _ in range(cg_iterations):
-                    Ad = matvec(d, lam)
-                    dAd = float((d * Ad).sum())
-                    if not dAd > 0:
-                        break
-                    a = rz / dAd
-                    x = x + a * d
-                    res = res - a * Ad
-                    z = torch.bmm(Minv, res[:, :, None])[..., 0]
-                    rz_new = float((res * z).sum())
-                    if rz_new <= 1e-20 * rz0:
-                        break
-                    d = z + (rz_new / rz) * d
-                    rz = rz_new
-                x = x.clamp(-MAX_STEP, MAX_STEP)
-                trial = theta + x
-                new_cost = total_of(trial)
-                if new_cost < cost:
-                    theta, cost = trial, new_cost
-                    lam = max(lam / 3, 1e-9)
-                    accepted.append(True)
-                    break
-                lam *= 4
-                accepted.append(False)
-        history.append(cost / n_res)
+            w, g, B = data.normal(J, r, dp)
+            if prior is not None and it == 0:
+                _calibrate(prior, B, sharing)
+                cost = total_of(theta)
+                history[0] = cost / data.n_res
+            system = _Normal.of(data, prior, canon, dp, J, w, g, B)
+            theta, cost, lam = _damped_step(system, theta, cost, lam, total_of, cg_iterations, accepted)
+        history.append(cost / data.n_res)
         if progress is not None:
-            progress("footprint" if pix is not None else "joint", it + 1, history[-1])
+            progress("footprint" if data.pix is not None else "joint", it + 1, history[-1])
         if len(history) > 1 and history[-2] - history[-1] <= 1e-6 * history[-2]:
             break
     out = {"joint_s": time.perf_counter() - t0, "joint_history": history, "joint_accepted": accepted,
-           "joint_sampling": "footprint" if pix is not None else sampling, "joint_data_cost": cost_of(theta) / n_res}
+           "joint_sampling": "footprint" if data.pix is not None else sampling,
+           "joint_data_cost": data.cost(theta) / data.n_res}
     if adapt:   # the ratios measured (none when the refinement stopped after one iteration) and the final units
-        out["noise_ratio"] = noise_ratios
-        out["prior_units"] = {n: float(prior.thr[prior.col_names.index(n)]) for n in adapt}
+        out["noise_ratio"] = units.ratios
+        out["prior_units"] = units.units()
     return theta, out
