@@ -29,19 +29,22 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from materials import Model
 from materials import get as get_model
-from renderer.gbuffer import render_gbuffer
+from renderer.gbuffer import GBuffer, render_gbuffer
 from renderer.imageio import ImageIOError, read_exr, read_raster
 from renderer.lights import DirectionalLight, Environment, PointLight
+from renderer.mesh import Mesh
 from renderer.shading import prepare, shade
 from renderer.texture import texel_of
 
-from .dataset import SCENE_FILE, Dataset, DatasetWarning, load_dataset, scene_json_text
+from .dataset import SCENE_FILE, Dataset, DatasetWarning, Photo, View, load_dataset, scene_json_text
 from .outputs import atomic_folder, check_output, jsonable
 
 __all__ = ["CalibrationError", "HDRWarning", "UVRegion", "LightEstimate", "Calibration", "calibrate_lights",
@@ -253,6 +256,199 @@ def _unit(light):
     return DirectionalLight(light.direction, 1.0), "irradiance", light.irradiance
 
 
+class _Shading(NamedTuple):
+    """What the region's predicted radiance is rendered with: the mesh, Lambert at the known albedo, k×k rays."""
+
+    mesh: Mesh
+    lambert: Model
+    amap: dict[str, Tensor]
+    supersample: int
+    shadows: bool
+
+
+@dataclass
+class _Unknowns:
+    """The system's unknowns, in order of appearance: one per light or group of lights (:data:`SHARE_MODES`)."""
+
+    share: str
+    keys: list[tuple] = field(default_factory=list)
+    labels: list[str] = field(default_factory=list)
+    kinds: list[str] = field(default_factory=list)
+    declared: list[Tensor] = field(default_factory=list)
+    first: dict[tuple, int] = field(default_factory=dict)
+
+    def index(self, i: int, j: int, fld: str, value: Tensor) -> int:
+        """The unknown of ``images[i].lights[j]`` (a ``fld`` light declared at ``value``), added when new."""
+        share = self.share
+        key = {"index": ("index", j), "each": ("entry", i, j), "all": ("all",)}[share]
+        if key not in self.first:
+            self.first[key] = len(self.keys)
+            self.keys.append(key)
+            self.labels.append({"index": f"images[*].lights[{j}]", "each": f"images[{i}].lights[{j}]",
+                                "all": "all lights"}[share])
+            self.kinds.append(fld)
+            self.declared.append(value)
+        u = self.first[key]
+        if self.kinds[u] != fld and share != "all":
+            kind = "point" if fld == "intensity" else "directional"
+            raise CalibrationError(f"images[{i}].lights[{j}] is a {kind} light but {self.labels[u]} is not in the "
+                                   f"other photos; with share='index' light j "
+                                   "must be the same light in every photo — use share='each'")
+        return u
+
+
+class _ViewRows(NamedTuple):
+    """One photo's rows of the system: region radiance less the environment's ``y`` [p, 3], and per unknown
+    its column [p, 3]."""
+
+    y: Tensor
+    cols: list[tuple[int, Tensor]]
+
+
+def _region_pixels(g: GBuffer, photo: Photo, sel: Tensor, uv_mask: Tensor | None, k: int) -> Tensor:
+    """``sel`` narrowed to pixels whose rays all hit the mesh (and, with ``uv_mask``, all land in the region),
+    neither clipped nor non-finite in the photo."""
+    n = sel.shape[0]
+    full = g.pixel_weight().reshape(-1) >= 1 - 1e-6
+    sel &= full & ~photo.unusable.reshape(-1).cpu() & ~photo.nonfinite.reshape(-1).cpu()
+    if uv_mask is not None:
+        H, W = uv_mask.shape
+        inside = uv_mask.reshape(-1)[texel_of(g.uv.double(), H, W)].double()
+        count = torch.zeros(n, dtype=torch.float64).index_add(0, g.pixel, inside)
+        sel &= count >= k * k - 0.5
+    return sel
+
+
+def _unit_radiance(shading: _Shading, g: GBuffer, unit, n: int) -> tuple[Tensor, Tensor]:
+    """Each pixel's Lambertian radiance under the unit-level light ``unit`` [n, 3], and how many of its rays the
+    light reaches [n]."""
+    prep = prepare(g, shading.mesh, [unit], shadows=shading.shadows)
+    col = g.to_image(shade(shading.lambert, shading.amap, prep)).reshape(-1, 3).double()
+    reached = torch.zeros(n, dtype=torch.float64)
+    for term in prep.lights:
+        reached.index_add_(0, g.pixel[term.index], torch.ones(len(term.index), dtype=torch.float64))
+    return col, reached
+
+
+def _view_rows(shading: _Shading, i: int, view: View, photo: Photo, card: Tensor | None, uv_mask: Tensor | None,
+               unknowns: _Unknowns, entry: list) -> _ViewRows | None:
+    """Photo ``i``'s rows; sets ``entry[j]`` to (unknown, declared value) of each light it calibrates. ``card``:
+    its card mask, or None with a UV region. None when no region pixel or no calibrated light is usable."""
+    cam = view.camera
+    k = shading.supersample
+    n = cam.height * cam.width
+    sel = torch.ones(n, dtype=torch.bool)
+    if card is not None:
+        sel &= card.reshape(-1)
+    g = render_gbuffer(shading.mesh, cam, k)
+    sel = _region_pixels(g, photo, sel, uv_mask, k)
+    cols, offset = [], torch.zeros(n, 3, dtype=torch.float64)
+    envs = [lt for lt in view.lights if isinstance(lt, Environment)]
+    if envs:
+        prep = prepare(g, shading.mesh, envs, shadows=shading.shadows)
+        offset = g.to_image(shade(shading.lambert, shading.amap, prep)).reshape(-1, 3).double()
+    for j, light in enumerate(view.lights):
+        if isinstance(light, Environment):
+            continue
+        unit, fld, value = _unit(light)
+        col, reached = _unit_radiance(shading, g, unit, n)
+        sel &= (reached < 0.5) | (reached > k * k - 0.5)  # all of the pixel's rays, or none
+        u = unknowns.index(i, j, fld, value.double())
+        if unknowns.share == "all":
+            col = col * value.double()  # the unknown is a scale of the declared value
+        entry[j] = (u, value.double())
+        cols.append((u, col))
+    idx = torch.nonzero(sel).squeeze(-1)
+    if len(idx) == 0 or not cols:
+        return None
+    y = photo.radiance.reshape(-1, 3).double()[idx] - offset[idx]
+    return _ViewRows(y, [(u, c[idx]) for u, c in cols])
+
+
+def _assemble(rows: Sequence[_ViewRows], labels: Sequence[str], min_pixels: int) -> tuple[Tensor, Tensor]:
+    """The stacked system ``A`` [P, U, 3], ``Y`` [P, 3]; refuses too few pixels and lights never seen lit."""
+    U = len(labels)
+    if U == 0:
+        raise CalibrationError("calibrate_lights: the photos have no point or directional light to calibrate "
+                               "(environment lights are held at their declared values)")
+    P = sum(len(r.y) for r in rows)
+    if P < max(min_pixels, U + 1):
+        raise CalibrationError(f"calibrate_lights: only {P} usable region pixel(s) (need ≥ {max(min_pixels, U + 1)}): "
+                               "the region must be seen, fully covered by the mesh, unsaturated and lit; enlarge the "
+                               "card masks, check they match the photos, or lower min_pixels")
+    A = torch.zeros(P, U, 3, dtype=torch.float64)
+    Y = torch.cat([r.y for r in rows])
+    r0 = 0
+    for y, cols in rows:
+        for u, c in cols:
+            A[r0:r0 + len(y), u] += c
+        r0 += len(y)
+    return A, Y
+
+
+def _check_identifiable(A: Tensor, lit: Tensor, labels: Sequence[str]) -> None:
+    """Every unknown lights some pixel, and no two light the region in the same proportions."""
+    U = len(labels)
+    dark = [labels[u] for u in range(U) if not bool(lit[:, u].any())]
+    if dark:
+        raise CalibrationError(
+            f"calibrate_lights: {', '.join(dark)} never light(s) a usable region pixel in any photo (the region faces "
+            f"away, is shadowed, or is not seen where they shine): their intensity cannot be measured; photograph the "
+            f"card where each light reaches it, declare the lights identical (share='all'), or remove those lights")
+    # lights whose contributions are proportional cannot be separated
+    for c in range(3):
+        An = A[..., c] / A[..., c].norm(dim=0).clamp_min(1e-300)
+        s = torch.linalg.svdvals(An)
+        if float(s[-1] / s[0]) < 1e-6:
+            corr = An.T @ An
+            corr.fill_diagonal_(-1)
+            a, b = divmod(int(torch.argmax(corr)), U)
+            raise CalibrationError(
+                f"calibrate_lights: {labels[a]} and {labels[b]} light the region in the same proportions in every "
+                f"photo, so their intensities cannot be told apart (condition {float(s[0] / s[-1]):.3g}); add photos "
+                f"where they light it differently, or declare them identical (share='all')")
+
+
+def _solve(A: Tensor, Y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Per channel non-negative least squares: estimates [U, 3], their standard errors [U, 3], residuals [P, 3]."""
+    from scipy.optimize import nnls
+
+    P, U = A.shape[:2]
+    est = torch.zeros(U, 3, dtype=torch.float64)
+    se = torch.zeros(U, 3, dtype=torch.float64)
+    res = torch.zeros(P, 3, dtype=torch.float64)
+    for c in range(3):
+        a, y = A[..., c], Y[:, c]
+        norm = a.norm(dim=0)
+        x, _ = nnls((a / norm).numpy(), y.numpy())
+        x = torch.from_numpy(x) / norm
+        est[:, c] = x
+        r = y - a @ x
+        res[:, c] = r
+        # heteroscedasticity-consistent (HC1) covariance: photo noise grows with the signal
+        inv = torch.linalg.inv(a.T @ a)
+        meat = (a * (r * r)[:, None]).T @ a
+        cov = inv @ meat @ inv * (P / max(P - U, 1))
+        se[:, c] = cov.diagonal().clamp_min(0).sqrt()
+    return est, se, res
+
+
+def _light_estimates(unknowns: _Unknowns, est: Tensor, se: Tensor, res: Tensor, Y: Tensor,
+                     lit: Tensor) -> list[LightEstimate]:
+    share = unknowns.share
+    lights = []
+    for u in range(len(unknowns.keys)):
+        m = lit[:, u]
+        rel = float(res[m].pow(2).mean().sqrt() / Y[m].mean().abs().clamp_min(1e-300))
+        dec = unknowns.declared[u]
+        value = est[u] * dec if share == "all" else est[u]
+        err = se[u] * dec if share == "all" else se[u]
+        scale = [float(v / d) if d > 0 else math.nan for v, d in zip(value.tolist(), dec.tolist(), strict=True)]
+        lights.append(LightEstimate(unknowns.labels[u], unknowns.kinds[u], dec.tolist(), value.tolist(),
+                                    err.tolist(), rel, int(m.sum()), scale))
+    return lights
+
+
 def calibrate_lights(dataset, region, albedo, *, share: str = "index", supersample: int = 4, shadows: bool = True,
                      min_pixels: int = 20, out=None, overwrite: bool = False) -> Calibration:
     """Estimate the lights' intensities from a region of known diffuse albedo seen in the photos.
@@ -295,132 +491,28 @@ def calibrate_lights(dataset, region, albedo, *, share: str = "index", supersamp
     amap = {"albedo": rho.to(torch.get_default_dtype()).reshape(1, 1, 3)}
     photos = ds.load_images()
     k = supersample
+    shading = _Shading(ds.mesh, lambert, amap, k, shadows)
 
-    keys, labels, kinds, declared, first = [], [], [], [], {}   # unknowns
-    rows_A, rows_y = [], []                       # per view: A [P, U_view, 3], y [P, 3]
+    unknowns = _Unknowns(share)
+    rows: list[_ViewRows] = []                    # per view with usable pixels: y [P_view, 3], columns
     entry_unknown: list[list] = []
-    used_views = 0
     for i, (view, photo) in enumerate(zip(ds.views, photos, strict=True)):
         entry_unknown.append([None] * len(view.lights))
-        cam = view.camera
-        sel = torch.ones(cam.height * cam.width, dtype=torch.bool)
-        if masks is not None:
-            if masks[i] is None:
-                continue
-            sel &= masks[i].reshape(-1)
-        g = render_gbuffer(ds.mesh, cam, k)
-        full = g.pixel_weight().reshape(-1) >= 1 - 1e-6
-        sel &= full & ~photo.unusable.reshape(-1).cpu() & ~photo.nonfinite.reshape(-1).cpu()
-        if uv_mask is not None:
-            H, W = uv_mask.shape
-            inside = uv_mask.reshape(-1)[texel_of(g.uv.double(), H, W)].double()
-            count = torch.zeros(cam.height * cam.width, dtype=torch.float64).index_add(0, g.pixel, inside)
-            sel &= count >= k * k - 0.5
-        cols, offset = [], torch.zeros(cam.height * cam.width, 3, dtype=torch.float64)
-        envs = [lt for lt in view.lights if isinstance(lt, Environment)]
-        if envs:
-            prep = prepare(g, ds.mesh, envs, shadows=shadows)
-            offset = g.to_image(shade(lambert, amap, prep)).reshape(-1, 3).double()
-        for j, light in enumerate(view.lights):
-            if isinstance(light, Environment):
-                continue
-            unit, fld, value = _unit(light)
-            prep = prepare(g, ds.mesh, [unit], shadows=shadows)
-            col = g.to_image(shade(lambert, amap, prep)).reshape(-1, 3).double()
-            reached = torch.zeros(cam.height * cam.width, dtype=torch.float64)
-            for term in prep.lights:
-                reached.index_add_(0, g.pixel[term.index], torch.ones(len(term.index), dtype=torch.float64))
-            sel &= (reached < 0.5) | (reached > k * k - 0.5)  # all of the pixel's rays, or none
-            key = {"index": ("index", j), "each": ("entry", i, j), "all": ("all",)}[share]
-            if key not in first:
-                first[key] = len(keys)
-                keys.append(key)
-                labels.append({"index": f"images[*].lights[{j}]", "each": f"images[{i}].lights[{j}]",
-                               "all": "all lights"}[share])
-                kinds.append(fld)
-                declared.append(value.double())
-            u = first[key]
-            if kinds[u] != fld and share != "all":
-                kind = "point" if fld == "intensity" else "directional"
-                raise CalibrationError(f"images[{i}].lights[{j}] is a {kind} light but {labels[u]} is not in the "
-                                       f"other photos; with share='index' light j "
-                                       "must be the same light in every photo — use share='each'")
-            if share == "all":
-                col = col * value.double()  # the unknown is a scale of the declared value
-            entry_unknown[i][j] = (u, value.double())
-            cols.append((u, col))
-        idx = torch.nonzero(sel).squeeze(-1)
-        if len(idx) == 0 or not cols:
+        if masks is not None and masks[i] is None:
             continue
-        used_views += 1
-        y = photo.radiance.reshape(-1, 3).double()[idx] - offset[idx]
-        rows_y.append(y)
-        rows_A.append([(u, c[idx]) for u, c in cols])
-    U = len(keys)
-    if U == 0:
-        raise CalibrationError("calibrate_lights: the photos have no point or directional light to calibrate "
-                               "(environment lights are held at their declared values)")
-    P = sum(len(y) for y in rows_y)
-    if P < max(min_pixels, U + 1):
-        raise CalibrationError(f"calibrate_lights: only {P} usable region pixel(s) (need ≥ {max(min_pixels, U + 1)}): "
-                               "the region must be seen, fully covered by the mesh, unsaturated and lit; enlarge the "
-                               "card masks, check they match the photos, or lower min_pixels")
-    A = torch.zeros(P, U, 3, dtype=torch.float64)
-    Y = torch.cat(rows_y)
-    r0 = 0
-    for y, cols in zip(rows_y, rows_A, strict=True):
-        for u, c in cols:
-            A[r0:r0 + len(y), u] += c
-        r0 += len(y)
+        card = masks[i] if masks is not None else None
+        view_rows = _view_rows(shading, i, view, photo, card, uv_mask, unknowns, entry_unknown[i])
+        if view_rows is not None:
+            rows.append(view_rows)
+    used_views = len(rows)
+    A, Y = _assemble(rows, unknowns.labels, min_pixels)
+    P = len(Y)
     lit = (A > 0).any(-1)                    # [P, U]
-    dark = [labels[u] for u in range(U) if not bool(lit[:, u].any())]
-    if dark:
-        raise CalibrationError(
-            f"calibrate_lights: {', '.join(dark)} never light(s) a usable region pixel in any photo (the region faces "
-            f"away, is shadowed, or is not seen where they shine): their intensity cannot be measured; photograph the "
-            f"card where each light reaches it, declare the lights identical (share='all'), or remove those lights")
-    # lights whose contributions are proportional cannot be separated
-    for c in range(3):
-        An = A[..., c] / A[..., c].norm(dim=0).clamp_min(1e-300)
-        s = torch.linalg.svdvals(An)
-        if float(s[-1] / s[0]) < 1e-6:
-            corr = An.T @ An
-            corr.fill_diagonal_(-1)
-            a, b = divmod(int(torch.argmax(corr)), U)
-            raise CalibrationError(
-                f"calibrate_lights: {labels[a]} and {labels[b]} light the region in the same proportions in every "
-                f"photo, so their intensities cannot be told apart (condition {float(s[0] / s[-1]):.3g}); add photos "
-                f"where they light it differently, or declare them identical (share='all')")
-    from scipy.optimize import nnls
-
-    est = torch.zeros(U, 3, dtype=torch.float64)
-    se = torch.zeros(U, 3, dtype=torch.float64)
-    res = torch.zeros(P, 3, dtype=torch.float64)
-    for c in range(3):
-        a, y = A[..., c], Y[:, c]
-        norm = a.norm(dim=0)
-        x, _ = nnls((a / norm).numpy(), y.numpy())
-        x = torch.from_numpy(x) / norm
-        est[:, c] = x
-        r = y - a @ x
-        res[:, c] = r
-        # heteroscedasticity-consistent (HC1) covariance: photo noise grows with the signal
-        inv = torch.linalg.inv(a.T @ a)
-        meat = (a * (r * r)[:, None]).T @ a
-        cov = inv @ meat @ inv * (P / max(P - U, 1))
-        se[:, c] = cov.diagonal().clamp_min(0).sqrt()
+    _check_identifiable(A, lit, unknowns.labels)
+    est, se, res = _solve(A, Y)
     mean_y = Y.mean(0).abs().clamp_min(1e-300)
     rms = res.pow(2).mean(0).sqrt()
-    lights = []
-    for u in range(U):
-        m = lit[:, u]
-        rel = float(res[m].pow(2).mean().sqrt() / Y[m].mean().abs().clamp_min(1e-300))
-        dec = declared[u]
-        value = est[u] * dec if share == "all" else est[u]
-        err = se[u] * dec if share == "all" else se[u]
-        scale = [float(v / d) if d > 0 else math.nan for v, d in zip(value.tolist(), dec.tolist(), strict=True)]
-        lights.append(LightEstimate(labels[u], kinds[u], dec.tolist(), value.tolist(), err.tolist(), rel,
-                                    int(m.sum()), scale))
+    lights = _light_estimates(unknowns, est, se, res, Y, lit)
     values = []
     for row in entry_unknown:
         values.append([None if e is None else ((est[e[0]] * e[1]) if share == "all" else est[e[0]]).tolist()
