@@ -41,9 +41,11 @@ import operator
 import os
 import shutil
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -57,6 +59,11 @@ from renderer.gbuffer import check_psf_sigma
 from .fit import LOSSES, NOISE, FitResult, SolverError, photo_noise_ratio, photo_sigma, solve_adam, solve_fast
 from .fit.options import FitOptions
 from .observations import Observations, observe_views
+
+if TYPE_CHECKING:
+    from .dataset import Dataset
+    from .footprint import PixelFootprints
+    from .progress import Progress
 
 __all__ = ["reconstruct", "Report", "ReconstructionError", "AUTO_CANDIDATES", "AUTO_EXPLAINED_CHI2",
            "AUTO_TRIAL_TEXTURE", "AUTO_TRIAL_MIN_SAMPLES", "SCALARS", "UNRESOLVED_WARN", "unresolved_roughness"]
@@ -503,12 +510,76 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         with Progress(_stages(model, solver, footprint, sampling)) as bar:
             args = {k: v for k, v in locals().items() if k in _RECONSTRUCT_ARGS}
             return reconstruct(**{**args, "progress": bar}, **options)
-    from capture.dataset import load_dataset
-    from renderer.gbuffer import render_gbuffer
-    from renderer.shading import prepare
-
     times: dict[str, float] = {}
+    with _timed(times, "load"):
+        inputs = _check_inputs(dataset_path, model, out_dir, force, solver, loss, auto_chi2, known, scalars, options)
+        prog = progress if isinstance(progress, Progress) else Progress(_stages(model, solver, footprint, sampling),
+                                                                        enabled=False)
+        data = _load(dataset_path, holdout, prog)
+    with _timed(times, "gbuffer"):
+        preps = _gbuffers(data.ds, prog)
+    with _timed(times, "observe"):
+        seen = _observe(data, preps, solver, sampling, texture_size, footprint, psf_sigma, dtype, options, prog)
+    report = Report(model="", solver=solver, out_dir=str(inputs.out_dir))
+    _report_samples(report, data, seen, footprint, solver)
+    fitter = _Fitter(solver, loss, seen.options, inputs.scalars, _solver_progress(prog))
+
+    with _timed(times, "select"):
+        if len(inputs.candidates) > 1:
+            model = _select_model(inputs.candidates, inputs.known, data.fit_views, seen, fitter, auto_gain, auto_chi2,
+                                  prog, report)
+    mdl = _model(model, inputs.known)
+    report.model, report.model_spec = model, _model_spec(model)
+    with _timed(times, "solve"):
+        fitted = _final_fit(mdl, seen, fitter, prog, report)
+    chi2 = _check_misfit(report, fitted, seen)
+    known_maps = _known_maps(fitted.model, seen.obs.map_size)
+    spt, vpt = seen.obs.samples_per_texel(), seen.obs.views_per_texel()
+    _report_coverage(report, fitted.fit, seen, spt)
+    _report_fit(report, fitted, chi2, seen, solver)
+    _report_skipped(report, fitted.model, data.ds, seen, times["solve"])
+
+    with _timed(times, "metrics"):
+        prog.start("metrics")
+        _report_errors(report, data.ds, fitted, seen, known_maps)
+        renders = _rerender_views(report, data, fitted, seen)
+
+    _write_outputs(inputs.out_dir, data.ds, fitted.fit, seen.obs, renders, seen.photos, report, times, force,
+                   max_grid_views, spt, vpt, known_maps, prog)
+    return report
+
+
+#: reconstruct's own parameters, passed on unchanged when it re-enters itself with a thread count set
+_RECONSTRUCT_ARGS = tuple(p for p in inspect.signature(reconstruct).parameters if p != "options")
+
+
+@contextmanager
+def _timed(times: dict[str, float], stage: str) -> Iterator[None]:
+    """Record the seconds the ``with`` block takes as ``times[stage]`` (the report's ``times``; nothing when it
+    raises)."""
     t = time.perf_counter()
+    yield
+    times[stage] = time.perf_counter() - t
+
+
+# -- validate ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """:func:`reconstruct`'s arguments once checked."""
+
+    out_dir: Path                   #: the checked output folder (written at the end, atomically)
+    candidates: list[str]           #: the models to fit: ``[model]``, or auto's registered candidates
+    known: dict[str, object]        #: parameters held at given values
+    scalars: tuple[str, ...]        #: parameters fitted as one value per object, less the known ones
+
+
+def _check_inputs(dataset_path, model: str, out_dir, force: bool, solver: str, loss: str, auto_chi2,
+                  known: Mapping[str, object] | None, scalars, options: Mapping[str, object]) -> _Inputs:
+    """Check :func:`reconstruct`'s arguments before any work (the dataset is not read yet): a ReconstructionError
+    naming the fix for a missing or unusable output folder, a loaded dataset instead of its folder, an unknown
+    solver, solver option, loss or model, a bad ``auto_chi2``, ``scalars`` or known value."""
     if out_dir is None:
         raise ReconstructionError("out_dir is required: the folder to write the maps and report into")
     from capture.dataset import dataset_root
@@ -546,33 +617,87 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                                       f"their parameters are {sorted(params)}")
     for c in candidates:
         _model(c, known)  # unknown names and bad known values fail before any work
-    prog = progress if isinstance(progress, Progress) else Progress(_stages(model, solver, footprint, sampling),
-                                                                    enabled=False)
+    return _Inputs(out_dir, candidates, known, scalars)
+
+
+# -- load dataset and G-buffers ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Loaded:
+    """The dataset and how its views divide between the fit and the validation (``holdout``)."""
+
+    ds: Dataset
+    fit_views: list[int]            #: view indices fitted, ascending
+    held_views: list[int]           #: view indices held out, ascending (may be empty)
+
+
+def _load(dataset_path, holdout, prog: Progress) -> _Loaded:
+    """Load (and validate) the dataset, and check ``holdout`` against its views."""
+    from capture.dataset import load_dataset
+
     prog.start("load")
     ds = load_dataset(dataset_path)
     held_views = _check_holdout(holdout, len(ds.views))
-    fit_views = [i for i in range(len(ds.views)) if i not in held_views]
-    times["load"] = time.perf_counter() - t
+    return _Loaded(ds, [i for i in range(len(ds.views)) if i not in held_views], held_views)
 
-    # -- geometry once --------------------------------------------------------------------------
-    t = time.perf_counter()
+
+def _gbuffers(ds: Dataset, prog: Progress) -> list:
+    """One G-buffer per view with its shading prepared (shadow rays): geometry is known, so this happens once
+    whatever the model and solver."""
+    from renderer.gbuffer import render_gbuffer
+    from renderer.shading import prepare
+
     prog.start("gbuffer", f"{len(ds.views)} views")
     preps = []
     for v in ds.views:
         g = render_gbuffer(ds.mesh, v.camera, 1)
         preps.append(prepare(g, ds.mesh, v.lights, shadows=True))
         prog.tick()
-    times["gbuffer"] = time.perf_counter() - t
-    t = time.perf_counter()
-    prog.start("observe")
-    photos = ds.load_images(dtype=dtype)
-    if texture_size is None:
-        texture_size = int(next(iter(ds.gt.maps.values())).shape[0]) if ds.gt is not None else 256
+    return preps
+
+
+# -- observations -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Observed:
+    """The photos as the fits see them: samples (and pixel footprints), all views and split by ``holdout``, with the
+    settings every fit of the run shares."""
+
+    photos: list                    #: the dataset's photos (:class:`capture.dataset.Photo`)
+    lights: list                    #: the distinct lights of all views
+    texture_size: int               #: T of the fitted T×T maps
+    sampling: str                   #: "nearest" or "bilinear"
+    dtype: torch.dtype              #: dtype of the model evaluations
+    options: dict                   #: the solver's options, with ``sampling`` and (fast solver) ``pooled`` decided
+    pooled_auto: dict | None        #: why ``pooled`` was chosen, when it was not given (the report's ``fit.pooled``)
+    psf: float                      #: σ (pixels) of the photos' Gaussian pixel blur
+    observe: Callable[[int], Observations]                  #: the observations on maps of a given size
+    footprints: Callable[[int], PixelFootprints] | None      #: the same for pixel footprints; None: not fitted
+    all_obs: Observations           #: samples of all views
+    obs: Observations               #: samples of the fitted views
+    held_obs: Observations | None   #: samples of the held-out views
+    fp_all: PixelFootprints | None  #: footprints of all views, the fitted ones, the held-out ones
+    fp: PixelFootprints | None
+    held_fp: PixelFootprints | None
+
+
+def _distinct_lights(views) -> list:
+    """The lights of all ``views``, each light object once (by identity), in order of appearance."""
     all_lights = []
-    for v in ds.views:
+    for v in views:
         for x in v.lights:
             if all(x is not y for y in all_lights):
                 all_lights.append(x)
+    return all_lights
+
+
+def _solver_settings(views, solver: str, sampling: str | None,
+                     options: Mapping[str, object]) -> tuple[str, dict, dict | None]:
+    """``(sampling, solver options, pooled_auto)``: the sampling checked (None → "bilinear") and added to the
+    options, and the fast solver's ``pooled`` decided from the lights when not given (:func:`static_lights`;
+    ``pooled_auto`` says why, None when it was given or the solver is adam)."""
     if sampling is None:
         sampling = "bilinear"
     if sampling not in ("nearest", "bilinear"):
@@ -580,45 +705,85 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     options = {**options, "sampling": sampling}
     pooled_auto = None
     if solver == "fast" and options.get("pooled") is None:
-        static, n_lights, n_pairs = static_lights(ds.views)
+        static, n_lights, n_pairs = static_lights(views)
         options["pooled"] = POOLED_STATIC if static else 0
         pooled_auto = {"block": options["pooled"], "auto": True, "static_lights": static, "distinct_lights": n_lights,
                        "view_light_pairs": n_pairs}
+    return sampling, options, pooled_auto
+
+
+def _footprint_observer(ds: Dataset, preps: list, photos: list, lights: list, dtype: torch.dtype,
+                        psf: float) -> Callable[[int], PixelFootprints]:
+    """The photos' pixel footprints (:func:`capture.footprint.observe_footprints`) on maps of a given size."""
+    from .footprint import observe_footprints
+
+    def footprints(size: int) -> PixelFootprints:
+        return observe_footprints(ds.mesh, [v.camera for v in ds.views], [v.lights for v in ds.views],
+                                  [p.gbuffer for p in preps], [p.radiance for p in photos], (size, size),
+                                  lights=lights, clipped=[p.unusable for p in photos], dtype=dtype,
+                                  psf_sigma=psf)
+
+    return footprints
+
+
+def _observe(data: _Loaded, preps: list, solver: str, sampling: str | None, texture_size: int | None,
+             footprint: bool, psf_sigma: float | None, dtype: torch.dtype, options: Mapping[str, object],
+             prog: Progress) -> _Observed:
+    """The valid samples of every view (:func:`capture.observations.observe_views`) and, for the fast solver's
+    bilinear fit, the photos' pixel footprints; both split into fitted and held-out views."""
+    ds = data.ds
+    prog.start("observe")
+    photos = ds.load_images(dtype=dtype)
+    if texture_size is None:
+        texture_size = int(next(iter(ds.gt.maps.values())).shape[0]) if ds.gt is not None else 256
+    all_lights = _distinct_lights(ds.views)
+    sampling, options, pooled_auto = _solver_settings(ds.views, solver, sampling, options)
+
     def observe(size: int) -> Observations:
         return observe_views(preps, [p.radiance for p in photos], (size, size), exposure=1.0,
                              clipped=[p.unusable for p in photos], lights=all_lights, dtype=dtype,
                              bilinear=sampling == "bilinear")
 
-    obs = observe(texture_size)
-    fp_all = fp = held_fp = None
+    all_obs = observe(texture_size)
+    fp_all = fp = held_fp = footprints = None
     try:
         psf = ds.psf_sigma if psf_sigma is None else check_psf_sigma(psf_sigma)
     except ValueError as exc:
         raise ReconstructionError(f"{exc}; or None for the dataset's") from None
     if footprint and solver == "fast" and sampling == "bilinear":
-        from .footprint import observe_footprints, saving
-
-        def footprints(size: int):
-            return observe_footprints(ds.mesh, [v.camera for v in ds.views], [v.lights for v in ds.views],
-                                      [p.gbuffer for p in preps], [p.radiance for p in photos], (size, size),
-                                      lights=all_lights, clipped=[p.unusable for p in photos], dtype=dtype,
-                                      psf_sigma=psf)
-
+        footprints = _footprint_observer(ds, preps, photos, all_lights, dtype, psf)
         prog.start("footprints")
         fp_all = footprints(texture_size)
-        fp = fp_all.select_views(fit_views) if held_views else fp_all
-        held_fp = fp_all.select_views(held_views) if held_views else None
-    times["observe"] = time.perf_counter() - t
-    n_pix = sum(v.camera.width * v.camera.height for v in ds.views)
-    report = Report(model="", solver=solver, out_dir=str(out_dir))
-    report.samples = {"pixels": n_pix, "valid": obs.n_samples, "pairs": obs.n_pairs,
-                      "lights": len(all_lights), "views": len(ds.views)}
+        fp = fp_all.select_views(data.fit_views) if data.held_views else fp_all
+        held_fp = fp_all.select_views(data.held_views) if data.held_views else None
+    obs, held_obs = all_obs, None
+    if data.held_views:
+        obs, held_obs = all_obs.select_views(data.fit_views), all_obs.select_views(data.held_views)
+        if obs.n_samples == 0:
+            raise ReconstructionError(f"the views left to fit ({data.fit_views}) have no valid sample; hold out "
+                                      f"fewer views (holdout={data.held_views})")
+    return _Observed(photos, all_lights, texture_size, sampling, dtype, options, pooled_auto, psf, observe, footprints,
+                     all_obs, obs, held_obs, fp_all, fp, held_fp)
+
+
+def _n_pixels(ds: Dataset) -> int:
+    """The pixels of all the dataset's photos."""
+    return sum(v.camera.width * v.camera.height for v in ds.views)
+
+
+def _report_samples(report: Report, data: _Loaded, seen: _Observed, footprint: bool, solver: str) -> None:
+    """The report's ``samples`` and ``drops``, and a warning when the photos' pixel blur goes unmodelled."""
+    obs, fp_all, psf = seen.all_obs, seen.fp_all, seen.psf
+    report.samples = {"pixels": _n_pixels(data.ds), "valid": obs.n_samples, "pairs": obs.n_pairs,
+                      "lights": len(seen.lights), "views": len(data.ds.views)}
     report.drops = dict(obs.drops)
     if psf > 0 and fp_all is None:
         report.warnings.append(f"the photos' pixel filter has a Gaussian blur (psf_sigma {psf:g} px) that only the "
                                f"footprint fit models; this fit ({'pixel centres' if not footprint else solver}) "
                                f"ignores it — use the fast solver with footprints")
     if fp_all is not None:
+        from .footprint import saving
+
         report.samples["footprints"] = {
             "pixels": fp_all.n_pixels, "samples": fp_all.n_samples,
             "samples_per_pixel": dict(zip(*(x.tolist() for x in torch.unique(fp_all.counts, return_counts=True)),
@@ -626,14 +791,16 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             "rays_cast": fp_all.cast_rays, "rays_saved_vs_uniform": saving(fp_all),
             "texture_samples": fp_all.texture_samples, "drops": fp_all.drops,
             "psf_sigma": float(psf)}
-    all_obs, held_obs = obs, None
-    if held_views:
-        obs, held_obs = all_obs.select_views(fit_views), all_obs.select_views(held_views)
-        report.samples.update(heldout_views=held_views, heldout_samples=held_obs.n_samples,
-                              fitted_samples=obs.n_samples)
-        if obs.n_samples == 0:
-            raise ReconstructionError(f"the views left to fit ({fit_views}) have no valid sample; hold out fewer "
-                                      f"views (holdout={held_views})")
+    if data.held_views:
+        report.samples.update(heldout_views=data.held_views, heldout_samples=seen.held_obs.n_samples,
+                              fitted_samples=seen.obs.n_samples)
+
+
+# -- fit: model selection and solve -----------------------------------------------------------------
+
+
+def _solver_progress(prog: Progress) -> Callable[[str, int, float], None]:
+    """The solvers' progress callback: each of their steps moves the bar to its stage and shows the loss."""
 
     def cb(stage, it, cost):
         # the solver's steps: its per-texel LM stages (the schedule's names), "share", "joint", "footprint", "adam"
@@ -641,83 +808,137 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             prog.start({"share": "sharing", "joint": "joint", "footprint": "footprint solve"}.get(stage, "solve"))
         prog.tick(f"{'' if stage in ('share', 'joint', 'footprint', 'adam') else stage + ' '}loss {cost:.3e}")
 
-    # -- model selection --------------------------------------------------------------------------
-    t = time.perf_counter()
-    if len(candidates) > 1:
-        prog.start("select", f"{len(candidates)} candidates")
-        trial = _trial_observations(observe, obs, texture_size, fit_views)
-        held = fit_views[3::4] if len(fit_views) >= 4 else []
-        train_obs = trial.select_views([i for i in fit_views if i not in held]) if held else trial
-        test_obs = trial.select_views(held) if held else trial
-        report.samples["auto_trials"] = {"texture_size": int(trial.map_size[0]), "samples": trial.n_samples,
-                                         "sample_fraction": trial.n_samples / max(obs.n_samples, 1)}
-        train_fp = test_fp = None
-        if fp is not None:
-            # the trials judge the photos' pixels as the final fit does: footprints on the trial's maps, thinned
-            # by the trial's area ratio as its pixel-centre samples are
-            size = int(trial.map_size[0])
-            tfp = fp if size == texture_size else footprints(size).select_views(fit_views)
-            if size != texture_size:
-                gen = torch.Generator().manual_seed(0)
-                tfp = tfp.select(torch.rand(tfp.n_pixels, generator=gen) < (size / texture_size) ** 2)
-            train_fp = tfp.select_views([i for i in fit_views if i not in held]) if held else tfp
-            test_fp = tfp.select_views(held) if held else tfp
-        best_err, chosen = math.inf, candidates[0]
-        for name in candidates:
-            m = _model(name, known)
-            params = list(m.param_names)
-            ts = time.perf_counter()
-            try:
-                fit, m, notes = _fit(m, train_obs, solver, loss, {**options, "footprints": train_fp}
-                                     if train_fp is not None else options, cb, scalars)
-            except SolverError as exc:
-                prog.abort()
-                raise ReconstructionError(f"auto, trial fit of {name}: {exc}") from None
-            if train_fp is not None:
-                with torch.no_grad():
-                    err = float((test_fp.render(m, {k: v.to(dtype) for k, v in fit.maps.items()})
-                                 - test_fp.radiance).abs().mean())
-                chi2 = _footprint_misfit(m, fit, train_fp, train_obs)
-            else:
-                err, chi2 = _heldout_error(m, fit, test_obs, sampling), _misfit(m, fit, train_obs, sampling)
-            report.selection.append({"model": name, "heldout_mae": err, "train_chi2": chi2,
-                                     "seconds": time.perf_counter() - ts,
-                                     "params": params,
-                                     **({"scalars": {k: v["value"] for k, v in notes.items()}} if notes else {})})
-            verdict, why = _auto_verdict(report.selection[:-1], params, err, chi2, best_err, auto_gain, auto_chi2)
-            if verdict == "failed":
-                report.selection[-1]["failed_fit"] = why
-                report.warnings.append(f"auto: the trial fit of {name} failed ({why}); it was not used to choose the "
-                                       f"model")
-                continue
-            if why:
-                report.selection[-1]["chosen_by"] = why
-            if verdict == "better":
-                best_err, chosen = min(err, best_err), name
-                if chi2 <= auto_chi2 and name != candidates[-1]:
-                    report.selection[-1]["stopped"] = f"explains its training photos within their noise (χ² per " \
-                                                      f"residual {chi2:.3g} ≤ {auto_chi2:g}); richer models skipped"
-                    break
-            else:
-                report.selection[-1]["stopped"] = "held-out error did not drop by more than " \
-                                                  f"{auto_gain:.0%}; richer models skipped"
+    return cb
+
+
+@dataclass(frozen=True)
+class _Fitter:
+    """How every fit of a run is made — auto's trial fits and the final fit alike (:func:`_fit`)."""
+
+    solver: str
+    loss: str
+    options: dict                   #: the solver's options (:attr:`_Observed.options`)
+    scalars: tuple[str, ...]        #: parameters fitted as one value per object
+    progress: Callable[[str, int, float], None]
+
+    def fit(self, model, obs: Observations,
+            footprints: PixelFootprints | None = None) -> tuple[FitResult, object, dict]:
+        """:func:`_fit` of ``model`` to ``obs`` (and, when given, the pixel ``footprints``)."""
+        options = {**self.options, "footprints": footprints} if footprints is not None else self.options
+        return _fit(model, obs, self.solver, self.loss, options, self.progress, self.scalars)
+
+
+class _Trial(NamedTuple):
+    """What ``model="auto"`` fits its candidates to (``train_*``) and judges them on (``test_*``)."""
+
+    train_obs: Observations
+    test_obs: Observations
+    train_fp: PixelFootprints | None
+    test_fp: PixelFootprints | None
+
+
+def _trial_problem(seen: _Observed, fit_views: list[int], report: Report) -> _Trial:
+    """Auto's trial problem: the fitted views (on a coarser copy for large maps, :func:`_trial_observations`), every
+    fourth of them held out when there are at least four; the report's ``samples.auto_trials`` says its size."""
+    obs, fp, texture_size = seen.obs, seen.fp, seen.texture_size
+    trial = _trial_observations(seen.observe, obs, texture_size, fit_views)
+    held = fit_views[3::4] if len(fit_views) >= 4 else []
+    train_obs = trial.select_views([i for i in fit_views if i not in held]) if held else trial
+    test_obs = trial.select_views(held) if held else trial
+    report.samples["auto_trials"] = {"texture_size": int(trial.map_size[0]), "samples": trial.n_samples,
+                                     "sample_fraction": trial.n_samples / max(obs.n_samples, 1)}
+    train_fp = test_fp = None
+    if fp is not None:
+        # the trials judge the photos' pixels as the final fit does: footprints on the trial's maps, thinned
+        # by the trial's area ratio as its pixel-centre samples are
+        size = int(trial.map_size[0])
+        tfp = fp if size == texture_size else seen.footprints(size).select_views(fit_views)
+        if size != texture_size:
+            gen = torch.Generator().manual_seed(0)
+            tfp = tfp.select(torch.rand(tfp.n_pixels, generator=gen) < (size / texture_size) ** 2)
+        train_fp = tfp.select_views([i for i in fit_views if i not in held]) if held else tfp
+        test_fp = tfp.select_views(held) if held else tfp
+    return _Trial(train_obs, test_obs, train_fp, test_fp)
+
+
+def _trial_errors(model, fit: FitResult, trial: _Trial, seen: _Observed) -> tuple[float, float]:
+    """``(held-out mean absolute error, training χ² per residual)`` of a trial fit: of the pixels as the footprint
+    operator predicts them when the trials fit footprints, else of the samples (:func:`_heldout_error`,
+    :func:`_misfit`)."""
+    if trial.train_fp is not None:
+        with torch.no_grad():
+            err = float((trial.test_fp.render(model, {k: v.to(seen.dtype) for k, v in fit.maps.items()})
+                         - trial.test_fp.radiance).abs().mean())
+        return err, _footprint_misfit(model, fit, trial.train_fp, trial.train_obs)
+    return (_heldout_error(model, fit, trial.test_obs, seen.sampling),
+            _misfit(model, fit, trial.train_obs, seen.sampling))
+
+
+def _select_model(candidates: list[str], known: Mapping[str, object], fit_views: list[int], seen: _Observed,
+                  fitter: _Fitter, auto_gain: float, auto_chi2: float, prog: Progress, report: Report) -> str:
+    """``model="auto"``: fit the ``candidates`` cheapest first on the trial problem (:func:`_trial_problem`) and
+    return the one chosen (module docstring, step 4); each trial is a row of ``report.selection``, the candidates
+    not tried are ``report.skipped["models_not_tried"]``."""
+    prog.start("select", f"{len(candidates)} candidates")
+    trial = _trial_problem(seen, fit_views, report)
+    best_err, chosen = math.inf, candidates[0]
+    for name in candidates:
+        m = _model(name, known)
+        params = list(m.param_names)
+        ts = time.perf_counter()
+        try:
+            fit, m, notes = fitter.fit(m, trial.train_obs, trial.train_fp)
+        except SolverError as exc:
+            prog.abort()
+            raise ReconstructionError(f"auto, trial fit of {name}: {exc}") from None
+        err, chi2 = _trial_errors(m, fit, trial, seen)
+        report.selection.append({"model": name, "heldout_mae": err, "train_chi2": chi2,
+                                 "seconds": time.perf_counter() - ts,
+                                 "params": params,
+                                 **({"scalars": {k: v["value"] for k, v in notes.items()}} if notes else {})})
+        verdict, why = _auto_verdict(report.selection[:-1], params, err, chi2, best_err, auto_gain, auto_chi2)
+        if verdict == "failed":
+            report.selection[-1]["failed_fit"] = why
+            report.warnings.append(f"auto: the trial fit of {name} failed ({why}); it was not used to choose the "
+                                   f"model")
+            continue
+        if why:
+            report.selection[-1]["chosen_by"] = why
+        if verdict == "better":
+            best_err, chosen = min(err, best_err), name
+            if chi2 <= auto_chi2 and name != candidates[-1]:
+                report.selection[-1]["stopped"] = f"explains its training photos within their noise (χ² per " \
+                                                  f"residual {chi2:.3g} ≤ {auto_chi2:g}); richer models skipped"
                 break
-        skipped = [c for c in candidates if c not in [s["model"] for s in report.selection]]
-        report.skipped["models_not_tried"] = skipped
-        model = chosen
-    times["select"] = time.perf_counter() - t
-    mdl = _model(model, known)
-    report.model = model
+        else:
+            report.selection[-1]["stopped"] = "held-out error did not drop by more than " \
+                                              f"{auto_gain:.0%}; richer models skipped"
+            break
+    skipped = [c for c in candidates if c not in [s["model"] for s in report.selection]]
+    report.skipped["models_not_tried"] = skipped
+    return chosen
+
+
+def _model_spec(name: str) -> dict:
+    """The report's ``model_spec``: the model's specification and its name as written."""
     from capture.dataset import model_label, model_spec
 
-    report.model_spec = {"spec": model_spec(model), "written": model_label(model)}
+    return {"spec": model_spec(name), "written": model_label(name)}
 
-    # -- solve ----------------------------------------------------------------------------------
-    t = time.perf_counter()
+
+class _Fitted(NamedTuple):
+    """The final fit."""
+
+    fit: FitResult
+    model: object                   #: the model fitted, with the fitted scalars as known values
+    scalar_notes: dict              #: notes on the fitted scalars (the report's ``fit.scalars``)
+
+
+def _final_fit(mdl, seen: _Observed, fitter: _Fitter, prog: Progress, report: Report) -> _Fitted:
+    """Fit the chosen model on the fitted views at full size; warn of scalars observable in no texel."""
     prog.start("solve", report.model)
     try:
-        fit, mdl, scalar_notes = _fit(mdl, obs, solver, loss, {**options, "footprints": fp} if fp is not None
-                                      else options, cb, scalars)
+        fit, mdl, scalar_notes = fitter.fit(mdl, seen.obs, seen.fp)
     except SolverError as exc:
         prog.abort()
         raise ReconstructionError(str(exc)) from None
@@ -725,8 +946,17 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         if not note["measured"]:
             report.warnings.append(f"parameter '{n}' is fitted as one value for the object but is "
                                    f"unobservable in every texel; its value {note['value']} is a guess")
-    times["solve"] = time.perf_counter() - t
-    chi2 = _footprint_misfit(mdl, fit, fp, obs) if fp is not None else _misfit(mdl, fit, obs, sampling)
+    return _Fitted(fit, mdl, scalar_notes)
+
+
+# -- report on the fit ------------------------------------------------------------------------------
+
+
+def _check_misfit(report: Report, fitted: _Fitted, seen: _Observed) -> float:
+    """The final fit's χ² per residual (of the pixels when it fitted footprints); a warning above
+    :data:`UNEXPLAINED_CHI2`."""
+    mdl, fit, fp, obs = fitted.model, fitted.fit, seen.fp, seen.obs
+    chi2 = _footprint_misfit(mdl, fit, fp, obs) if fp is not None else _misfit(mdl, fit, obs, seen.sampling)
     if chi2 > UNEXPLAINED_CHI2:
         report.warnings.append(
             f"the fitted maps do not explain the photos: χ² per residual {chi2:.3g} against ≤ ~4 for photos explained "
@@ -735,28 +965,32 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             f"other units or a wrong exposure, a model too simple for the material (try --model auto or a richer "
             f"one), a lens blur or pixel filter other than a box, or a mesh that does not match the photos; the "
             f"error column of views.png shows where")
-    known_used = getattr(mdl, "known", {})
-    unused = sorted(set(materials.CANONICAL) - set(mdl.param_names) - set(known_used))
-    report.skipped["parameters_not_allocated"] = unused
-    if known_used:
-        report.skipped["parameters_per_object"] = {k: t_.tolist() for k, t_ in known_used.items()}
-    H, W = obs.map_size
-    known_maps = {k: t_.to(torch.float32).expand(H, W, t_.numel()) for k, t_ in known_used.items()}
+    return chi2
+
+
+def _known_maps(mdl, map_size: tuple[int, int]) -> dict[str, Tensor]:
+    """The model's known parameters as constant ``[H, W, C]`` float32 maps."""
+    H, W = map_size
+    return {k: t_.to(torch.float32).expand(H, W, t_.numel()) for k, t_ in getattr(mdl, "known", {}).items()}
+
+
+def _report_coverage(report: Report, fit: FitResult, seen: _Observed, spt: Tensor) -> None:
+    """The report's ``coverage`` (``spt``: samples per texel), with warnings for a parameter unobservable in every
+    observed texel and for roughness the photos' direction sampling does not resolve (:func:`unresolved_roughness`)."""
     observed = fit.observed
-    spt, vpt = obs.samples_per_texel(), obs.views_per_texel()
     report.coverage = {"texels": int(observed.numel()), "observed": int(observed.sum()),
                        "unobserved_filled": int((~observed).sum()),
                        "unobservable": {k: int(v.sum()) for k, v in fit.unobservable.items()},
                        "observable_fraction": {k: 1.0 - float(v[observed].float().mean()) if bool(observed.any())
                                                else 0.0 for k, v in fit.unobservable.items()},
-                       "sampling": sampling,
+                       "sampling": seen.sampling,
                        "samples_per_observed_texel": float(spt[observed].float().mean()) if bool(observed.any()) else 0}
     for k, v in fit.unobservable.items():
         if bool(observed.any()) and int(v.sum()) == int(observed.sum()):
             report.warnings.append(f"parameter '{k}' is unobservable in every observed texel (e.g. no highlight "
                                    f"seen anywhere): its map is filled with defaults, not measured")
     if "roughness" in fit.raw:
-        frac, med = unresolved_roughness(obs, fit.raw["roughness"], observed & ~fit.unobservable["roughness"])
+        frac, med = unresolved_roughness(seen.obs, fit.raw["roughness"], observed & ~fit.unobservable["roughness"])
         report.coverage["roughness_unresolved_fraction"] = frac
         if frac >= UNRESOLVED_WARN:
             report.warnings.append(
@@ -766,6 +1000,11 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                 f"how densely the photos "
                 f"sample directions (a near-mirror surface), not a measurement; more views or light positions, "
                 f"or higher resolution, resolve it")
+
+
+def _report_fit(report: Report, fitted: _Fitted, chi2: float, seen: _Observed, solver: str) -> None:
+    """The report's ``fit``, with a warning when the reflectance sharing fell back to the texels' own fits."""
+    fit = fitted.fit
     fb = fit.info.get("sharing_fallback")
     if fb and fb["kept"] == "fallback":
         report.warnings.append(
@@ -775,74 +1014,109 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             f"{fb['fallback_data_cost']:.3g}) — a material of the object gave no texel that determines it (more views "
             f"or lights off the camera axis would)")
     report.fit = {"iterations": fit.iterations, "final_cost": fit.history[-1] if fit.history else None,
-                  "chi2_per_residual": chi2, "image_formation": "pixel footprints" if fp is not None else
+                  "chi2_per_residual": chi2, "image_formation": "pixel footprints" if seen.fp is not None else
                   "one ray per pixel centre",
                   "seconds": fit.time_s, **{k: v for k, v in fit.info.items() if k != "accepted"}}
-    if scalar_notes:
-        report.fit["scalars"] = scalar_notes
+    if fitted.scalar_notes:
+        report.fit["scalars"] = fitted.scalar_notes
     if solver == "fast":
-        report.fit["pooled"] = pooled_auto or {"block": int(options.get("pooled") or 0), "auto": False}
-    report.skipped["pixels_not_evaluated"] = {k: v for k, v in obs.drops.items()}
-    report.skipped["pixel_fraction_skipped"] = 1 - obs.n_samples / max(n_pix, 1)
+        report.fit["pooled"] = seen.pooled_auto or {"block": int(seen.options.get("pooled") or 0), "auto": False}
+
+
+def _report_skipped(report: Report, mdl, ds: Dataset, seen: _Observed, solve_s: float) -> None:
+    """The report's ``skipped``: parameters not allocated or given per object, pixels not evaluated and the time
+    that saved (:func:`_time_saved`)."""
+    import materials
     from renderer.lights import DirectionalLight, PointLight
 
+    known_used = getattr(mdl, "known", {})
+    unused = sorted(set(materials.CANONICAL) - set(mdl.param_names) - set(known_used))
+    report.skipped["parameters_not_allocated"] = unused
+    if known_used:
+        report.skipped["parameters_per_object"] = {k: t_.tolist() for k, t_ in known_used.items()}
+    obs = seen.obs
+    report.skipped["pixels_not_evaluated"] = {k: v for k, v in obs.drops.items()}
+    report.skipped["pixel_fraction_skipped"] = 1 - obs.n_samples / max(_n_pixels(ds), 1)
     report.skipped["time_saved_estimate_s"] = _time_saved(
-        all_obs, [sum(isinstance(x, (PointLight, DirectionalLight)) for x in v.lights) for v in ds.views],
-        times["solve"], obs.n_pairs, report.selection, report.skipped.get("models_not_tried", []))
+        seen.all_obs, [sum(isinstance(x, (PointLight, DirectionalLight)) for x in v.lights) for v in ds.views],
+        solve_s, obs.n_pairs, report.selection, report.skipped.get("models_not_tried", []))
 
-    # -- metrics --------------------------------------------------------------------------------
-    t = time.perf_counter()
-    prog.start("metrics")
-    from .metrics import determined_at_truth, image_metrics, map_errors, observability_errors
 
-    gt_size = tuple(next(iter(ds.gt.maps.values())).shape[:2]) if ds.gt is not None else None
-    if ds.gt is not None and gt_size != tuple(obs.map_size):
+# -- metrics vs ground truth ------------------------------------------------------------------------
+
+
+def _errors_by_texel_set(raw: Mapping[str, Tensor], truth: Mapping[str, Tensor], obs: Observations,
+                         fp: PixelFootprints | None) -> dict:
+    """The report's ``errors.maps_by_texel_set``: RMSE of the fitted (``raw``) maps on the texel sets the
+    image-formation targets are stated on (docs/image-formation.md): well lit, and of those the ones that cover at
+    least a pixel in some view and, for specular maps, seen inside a highlight."""
+    from .metrics import highlight_texels, map_errors, pixel_sized_texels, visible_lobe_texels, well_lit_texels
+
+    lit = well_lit_texels(obs)
+    sets = {"well_lit": lit}
+    if fp is not None:
+        sets["well_lit_pixel_sized"] = lit & pixel_sized_texels(fp)
+    if "roughness" in truth and tuple(truth["roughness"].shape[:2]) == tuple(obs.map_size):
+        sets["well_lit_highlight"] = lit & highlight_texels(obs, truth["roughness"])
+        if "f0" in truth:
+            # of those, the texels whose lobe stands out of the diffuse term (a faint broad lobe barely shapes a
+            # pixel, and its roughness trades with the albedo inside the noise)
+            sets["well_lit_visible_highlight"] = sets["well_lit_highlight"] & visible_lobe_texels(truth)
+    # roughness also as GGX/Beckmann α = r², the unit most renderers take
+    with_alpha = (lambda d: {**d, "roughness_alpha": roughness_to_alpha(d["roughness"])}
+                  if "roughness" in d else d)
+    fitted_a, truth_a = with_alpha(dict(raw)), with_alpha(dict(truth))
+    return {k: {"texels": int(m.sum()), **{n: e["rmse"] for n, e in map_errors(fitted_a, truth_a, m).items()}}
+            for k, m in sets.items()}
+
+
+def _report_errors(report: Report, ds: Dataset, fitted: _Fitted, seen: _Observed,
+                   known_maps: Mapping[str, Tensor]) -> None:
+    """The report's ``errors`` against the dataset's ground truth, when it has one of the fitted maps' size (else a
+    warning saying why there are none)."""
+    from .metrics import determined_at_truth, map_errors, observability_errors
+
+    if ds.gt is None:
+        return
+    fit, mdl, obs = fitted.fit, fitted.model, seen.obs
+    gt_size = tuple(next(iter(ds.gt.maps.values())).shape[:2])
+    if gt_size != tuple(obs.map_size):
         report.warnings.append(f"no texel errors against the ground truth: its maps are {gt_size[1]}×{gt_size[0]}, "
                                f"the fitted ones {obs.map_size[1]}×{obs.map_size[0]} (texture_size / --tex "
                                f"left unset fits at the truth's size)")
-    elif ds.gt is not None:
-        # fitted values (raw) on every observed texel, on the texels where each map is observable (judged at the
-        # estimate) and, when the photos were rendered by the fitted model, on those it is determined at the truth
-        determined = None
-        gt_model = ds.gt.build_model()
-        if gt_model.name == getattr(mdl, "base", mdl).name:
-            determined = determined_at_truth(gt_model, obs, ds.gt.maps, sampling=sampling,
-                                             noise=options.get("noise"), observable_std=options.get("observable_std"))
-        both = observability_errors(fit.raw, ds.gt.maps, observed, fit.unobservable, ds.gt.regions,
-                                    ds.gt.region_names, determined=determined)
-        report.errors["maps"] = {k: v["observed"] for k, v in both.items()}
-        report.errors["maps_observable"] = {k: v["observable"] for k, v in both.items()}
-        if determined is not None:
-            report.errors["maps_determined_at_truth"] = {k: v["determined"] for k, v in both.items()
-                                                         if "determined" in v}
-        report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
-        # the texel sets the image-formation targets are stated on (docs/image-formation.md): well lit, and of
-        # those the ones that cover at least a pixel in some view and, for specular maps, seen inside a highlight
-        from .metrics import highlight_texels, pixel_sized_texels, visible_lobe_texels, well_lit_texels
+        return
+    # fitted values (raw) on every observed texel, on the texels where each map is observable (judged at the
+    # estimate) and, when the photos were rendered by the fitted model, on those it is determined at the truth
+    observed = fit.observed
+    determined = None
+    gt_model = ds.gt.build_model()
+    if gt_model.name == getattr(mdl, "base", mdl).name:
+        determined = determined_at_truth(gt_model, obs, ds.gt.maps, sampling=seen.sampling,
+                                         noise=seen.options.get("noise"),
+                                         observable_std=seen.options.get("observable_std"))
+    both = observability_errors(fit.raw, ds.gt.maps, observed, fit.unobservable, ds.gt.regions,
+                                ds.gt.region_names, determined=determined)
+    report.errors["maps"] = {k: v["observed"] for k, v in both.items()}
+    report.errors["maps_observable"] = {k: v["observable"] for k, v in both.items()}
+    if determined is not None:
+        report.errors["maps_determined_at_truth"] = {k: v["determined"] for k, v in both.items()
+                                                     if "determined" in v}
+    report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
+    report.errors["maps_by_texel_set"] = _errors_by_texel_set(fit.raw, ds.gt.maps, obs, seen.fp)
+    report.errors["observability"] = both
+    if known_maps:  # how far the given values are from the truth, over the observed texels
+        report.errors["known"] = map_errors(known_maps, ds.gt.maps, observed, None, None)
+    report.errors["gt_model"] = ds.gt.model
 
-        lit = well_lit_texels(obs)
-        sets = {"well_lit": lit}
-        if fp is not None:
-            sets["well_lit_pixel_sized"] = lit & pixel_sized_texels(fp)
-        if "roughness" in ds.gt.maps and tuple(ds.gt.maps["roughness"].shape[:2]) == tuple(obs.map_size):
-            sets["well_lit_highlight"] = lit & highlight_texels(obs, ds.gt.maps["roughness"])
-            if "f0" in ds.gt.maps:
-                # of those, the texels whose lobe stands out of the diffuse term (a faint broad lobe barely shapes a
-                # pixel, and its roughness trades with the albedo inside the noise)
-                sets["well_lit_visible_highlight"] = sets["well_lit_highlight"] & visible_lobe_texels(ds.gt.maps)
-        # roughness also as GGX/Beckmann α = r², the unit most renderers take
-        with_alpha = (lambda d: {**d, "roughness_alpha": roughness_to_alpha(d["roughness"])}
-                      if "roughness" in d else d)
-        fitted_a, truth_a = with_alpha(dict(fit.raw)), with_alpha(dict(ds.gt.maps))
-        report.errors["maps_by_texel_set"] = {
-            k: {"texels": int(m.sum()), **{n: e["rmse"] for n, e in map_errors(fitted_a, truth_a, m).items()}}
-            for k, m in sets.items()}
-        report.errors["observability"] = both
-        if known_maps:  # how far the given values are from the truth, over the observed texels
-            report.errors["known"] = map_errors(known_maps, ds.gt.maps, observed, None, None)
-        report.errors["gt_model"] = ds.gt.model
-    # the fitted views with the fitted values, the held-out ones with the filled maps a user gets (texels only they
-    # see are unobserved in the fit)
+
+def _rerender_views(report: Report, data: _Loaded, fitted: _Fitted, seen: _Observed) -> list[tuple]:
+    """Every view re-rendered, compared with its photo (``report.views``): the fitted views with the fitted values,
+    the held-out ones with the filled maps a user gets (texels only they see are unobserved in the fit). Returns
+    ``(view, image, mask)`` rows for the views pages, the held-out views first."""
+    from .metrics import image_metrics
+
+    fit, mdl, obs, held_obs, fp, held_fp = fitted.fit, fitted.model, seen.obs, seen.held_obs, seen.fp, seen.held_fp
+    held_views, dtype = data.held_views, seen.dtype
     renders = []
     if fp is not None:
         # the fitted views' pixels as the fit models them (area averages over their footprints)
@@ -851,9 +1125,9 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             held_pred = held_fp.render(mdl, {k: v.to(dtype) for k, v in fit.maps.items()}) \
                 if held_fp is not None else None
     else:
-        pred = _render(mdl, fit.raw, obs, sampling)
-        held_pred = _render(mdl, fit.maps, held_obs, sampling) if held_obs is not None else None
-    for i, v in enumerate(ds.views):
+        pred = _render(mdl, fit.raw, obs, seen.sampling)
+        held_pred = _render(mdl, fit.maps, held_obs, seen.sampling) if held_obs is not None else None
+    for i, v in enumerate(data.ds.views):
         src, values = (held_obs, held_pred) if i in held_views else (obs, pred)
         H, W = v.camera.height, v.camera.width
         if fp is not None:
@@ -866,21 +1140,15 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             mask = torch.zeros(H * W, dtype=torch.bool)
             mask[src.pixel[sel]] = True
             mask = mask.reshape(H, W)
-        m = image_metrics(img, photos[i].radiance, mask)
+        m = image_metrics(img, seen.photos[i].radiance, mask)
         report.views.append({"view": i, **({"heldout": True} if i in held_views else {}), **m})
         renders.append((i, img, mask))
     # the grid shows the held-out views first
     renders.sort(key=lambda r: r[0] not in held_views)
-    times["metrics"] = time.perf_counter() - t
+    return renders
 
-    # -- write ----------------------------------------------------------------------------------
-    t = time.perf_counter()
-    _write_outputs(out_dir, ds, fit, obs, renders, photos, report, times, force, max_grid_views, spt, vpt,
-                   known_maps, prog)
-    return report
 
-#: reconstruct's own parameters, passed on unchanged when it re-enters itself with a thread count set
-_RECONSTRUCT_ARGS = tuple(p for p in inspect.signature(reconstruct).parameters if p != "options")
+# -- write ------------------------------------------------------------------------------------------
 
 
 def _write_outputs(out_dir: Path, ds, fit: FitResult, obs, renders, photos, report: Report, times, force,
