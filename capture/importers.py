@@ -39,6 +39,7 @@ import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -839,11 +840,28 @@ def _undistort_maps(camera: Camera, dist: np.ndarray):
                                        cv2.CV_32FC1)
 
 
-def _write(shots: list[_Shot], out, options: ImportOptions, overwrite: bool, source: str,
-           inputs: dict) -> ImportResult:
-    import cv2
+class _Format(NamedTuple):
+    """How the photos are stored and how the dataset will hold them."""
 
-    out = Path(out)
+    encoding: str
+    bits: int | None  # the photos' bits per sample, None for float
+    saturation: float | int | None  # in the photos' units: an integer code for sRGB, a value for linear
+    undistort: bool
+
+    @property
+    def top(self) -> int | None:
+        """The photos' largest integer code (None for float photos)."""
+        return (1 << self.bits) - 1 if self.bits else None
+
+    @property
+    def out_bits(self) -> int | None:
+        """Bits per sample of the written images: undistorted sRGB photos become 16-bit PNG."""
+        return 16 if (self.undistort and self.encoding == "srgb") else self.bits
+
+
+def _check_import_output(out: Path, shots: Sequence[_Shot], options: ImportOptions, overwrite: bool,
+                         inputs: dict) -> None:
+    """``out`` may be written: not existing (unless ``overwrite``), and none of the inputs inside it."""
     ins = {options.mesh: "the mesh file (--mesh)", **{p: f"the {k} input" for k, p in inputs.items()}}
     if options.images is not None:
         ins[options.images] = "the image folder (--images)"
@@ -852,47 +870,57 @@ def _write(shots: list[_Shot], out, options: ImportOptions, overwrite: bool, sou
     for s in shots:
         ins.setdefault(s.image, f"the photo {s.image.name}")
     check_output(out, ins, force=overwrite, error=CaptureImportError, force_flag="overwrite=True (--overwrite)")
-    mesh = _load_mesh(options)
 
-    # read every photo once: size, bits, encoding
+
+def _scan_photos(shots: Sequence[_Shot]) -> list[tuple[int, int | None]]:
+    """Each photo's (channels, bits), read once, after checking it has its camera's size."""
     photos = []
     for s in shots:
         arr, bits = _read_photo(s.image, s.where)
         if arr.shape[0] != s.camera.height or arr.shape[1] != s.camera.width:
             raise CaptureImportError(f"{s.where}: the photo {s.image} is {arr.shape[1]}×{arr.shape[0]} px but "
                                      f"its camera is "
-                               f"{s.camera.width}×{s.camera.height}; give the photos the cameras were computed from "
-                               "(not resized copies)")
+                                     f"{s.camera.width}×{s.camera.height}; give the photos the cameras were computed "
+                                     "from (not resized copies)")
         photos.append((arr.shape[2], bits))  # only what the checks need: the pixels are read again to write
         del arr
-    encs = {(_encoding_of(s.image, b, options.encoding), b) for s, (_, b) in zip(shots, photos, strict=True)}
+    return photos
+
+
+def _common_encoding(shots: Sequence[_Shot], photos: Sequence[tuple], requested: str) -> tuple[str, int | None]:
+    """The one (encoding, bits) of every photo; refuses mixed photos and impossible encodings."""
+    encs = {(_encoding_of(s.image, b, requested), b) for s, (_, b) in zip(shots, photos, strict=True)}
     if len({e for e, _ in encs}) > 1 or len(encs) > 1:
         raise CaptureImportError(f"the photos mix sample types / encodings {sorted(encs, key=str)}; a dataset has one: "
-                           "convert them to one type (e.g. all 8-bit JPEG/PNG, or all 16-bit TIFF)")
+                                 "convert them to one type (e.g. all 8-bit JPEG/PNG, or all 16-bit TIFF)")
     encoding, bits = next(iter(encs))
     if encoding == "srgb" and bits is None:
         raise CaptureImportError("float images hold linear values; use encoding 'linear' (or 'auto')")
     if encoding == "linear" and bits == 8:
         raise CaptureImportError("8-bit photos cannot be taken as linear (too few levels); use encoding 'srgb' "
                                  "or 16-bit "
-                           "/ float images")
-    has_dist = [s.dist is not None and bool(np.any(s.dist != 0)) for s in shots]
-    undistort = options.undistort and any(has_dist)
+                                 "/ float images")
+    return encoding, bits
+
+
+def _distortion_notes(shots: Sequence[_Shot], has_dist: Sequence[bool], options: ImportOptions,
+                      undistort: bool) -> list[str]:
+    """Warnings (issued, and returned for the result) about JPEGs written as PNG and ignored distortion."""
     msgs: list[str] = []
     jpegs = [s.image.name for s in shots if s.image.suffix.lower() in (".jpg", ".jpeg")]
     if undistort and jpegs:  # written as PNG: the loader cannot tell any more, so say it here
         msgs.append(f"{len(jpegs)} photo(s) were JPEG ({', '.join(jpegs[:3])}{' ...' if len(jpegs) > 3 else ''}): a "
                     "camera's JPEG is not pure sRGB, so the recovered albedo is approximate (docs/importing.md)")
-        warnings.warn(DatasetWarning(msgs[-1]), stacklevel=3)
+        warnings.warn(DatasetWarning(msgs[-1]), stacklevel=4)  # the importer's caller, through _write
     if any(has_dist) and not options.undistort:
         msgs.append(f"{sum(has_dist)} photo(s) have lens distortion coefficients, ignored (undistort=False): the "
                     "photos are taken as already undistorted")
-        warnings.warn(DatasetWarning(msgs[-1]), stacklevel=3)
-    if options.masks == "alpha" and any(c not in (2, 4) for c, _ in photos):
-        bad = next(s.image for s, (c, _) in zip(shots, photos, strict=True) if c not in (2, 4))
-        raise CaptureImportError(f"{bad}: has no alpha channel, but masks = 'alpha'; write the photos as RGBA "
-                                 f"PNG or give "
-                           "a mask folder")
+        warnings.warn(DatasetWarning(msgs[-1]), stacklevel=4)
+    return msgs
+
+
+def _import_saturation(options: ImportOptions, encoding: str, bits: int | None, undistort: bool):
+    """The photos' clipping level: the option, else the largest code (sRGB), 1.0 (integer linear) or None."""
     top = (1 << bits) - 1 if bits else None
     if options.saturation is not None:
         saturation = options.saturation
@@ -902,85 +930,127 @@ def _write(shots: list[_Shot], out, options: ImportOptions, overwrite: bool, sou
                                                  or not 1 <= saturation <= top):
         raise CaptureImportError(f"ImportOptions.saturation must be an integer code in [1, {top}] for "
                                  f"{bits}-bit sRGB photos, "
-                           f"got {saturation!r}")
+                                 f"got {saturation!r}")
+    return saturation
+
+
+def _undistort_photo(arr: np.ndarray, b: int | None, s: _Shot, mask: np.ndarray | None,
+                     fmt: _Format) -> tuple[np.ndarray, np.ndarray]:
+    """(undistorted linear image [H, W, C], usable mask [H, W]) of one photo: pixels whose footprint touches a
+    clipped pixel, the border, a masked-out pixel or a transparent one are not usable."""
+    import cv2
+
+    encoding, saturation, top = fmt.encoding, fmt.saturation, fmt.top
+    m1, m2 = _undistort_maps(s.camera, s.dist if s.dist is not None else np.zeros(4))
+    x = arr.astype(np.float32)
+    if b:
+        x /= np.float32(top)
+    alpha = None
+    if x.shape[2] in (2, 4):
+        alpha = x[..., -1] >= 0.5
+        x = x[..., :-1]
+    if saturation is None:
+        sat = np.zeros(x.shape[:2], bool)
+    else:  # x is in file units: code / top for integer photos, as stored for float ones
+        level = saturation / top if (b and encoding == "srgb") else float(saturation)
+        sat = (x >= level * (1 - 1e-6)).any(-1)
+    lin = decode(torch.from_numpy(np.ascontiguousarray(x)), "srgb").numpy() if encoding == "srgb" else x
+    und = cv2.remap(np.ascontiguousarray(lin), m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    if und.ndim == 2:
+        und = und[:, :, None]
+    good = cv2.remap((~sat).astype(np.float32), m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=0.0) >= 1 - 1e-4
+    for extra in (mask, alpha):
+        if extra is not None:
+            good &= cv2.remap(extra.astype(np.uint8), m1, m2, cv2.INTER_NEAREST,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    return und, good
+
+
+def _write_shot(tmp: Path, i: int, s: _Shot, b: int | None, options: ImportOptions, fmt: _Format) -> dict:
+    """Write photo ``i`` (copied as it is, or undistorted) and its mask into ``tmp``; returns its scene entry."""
+    arr = _read_photo(s.image, s.where)[0] if fmt.undistort else None
+    mask = _mask_for(s, options, (s.camera.height, s.camera.width), s.where)
+    if fmt.undistort:
+        und, mask = _undistort_photo(arr, b, s, mask, fmt)
+        if fmt.encoding == "srgb":
+            rel = f"{IMAGE_DIR}/{i:03d}.png"
+            write_png(tmp / rel, und, bits=16, transfer="srgb")
+        else:
+            rel = f"{IMAGE_DIR}/{i:03d}.exr"
+            write_exr(tmp / rel, und)
+    else:
+        rel = f"{IMAGE_DIR}/{i:03d}{s.image.suffix.lower()}"
+        shutil.copyfile(s.image, tmp / rel)
+    entry = {"file": rel, "name": s.name, "camera": s.camera.to_dict(),
+             "lights": [light_to_dict(x) for x in options.world_lights(s.camera)],
+             "exposure": float(options.exposure)}
+    if mask is not None:
+        mrel = f"{MASK_DIR}/{i:03d}.png"
+        (tmp / MASK_DIR).mkdir(exist_ok=True)
+        write_png(tmp / mrel, torch.from_numpy(mask.astype(np.float64)), bits=8, transfer="linear")
+        entry["mask"] = mrel
+    return entry
+
+
+def _import_scene_doc(entries: list[dict], fmt: _Format, options: ImportOptions, source: str) -> dict:
+    doc = {"format": FORMAT, "version": VERSION, "mesh": "mesh.obj", "encoding": fmt.encoding}
+    if fmt.encoding == "srgb":
+        doc["bits"] = fmt.out_bits
+        doc["saturation"] = (1 << fmt.out_bits) - 1 if fmt.undistort else int(fmt.saturation)
+    else:
+        doc["saturation"] = fmt.saturation
+    doc["images"] = entries
+    doc["meta"] = {"importer": source, "undistorted": bool(fmt.undistort), "unwrapped": options.unwrap,
+                   "flash_camera_frame": [{"position": list(f.position), "intensity": list(f.intensity)}
+                                          for f in options.flash]}
+    return doc
+
+
+def _validate_import(tmp: Path, out: Path) -> list[str]:
+    """Load the written dataset: its errors become CaptureImportErrors, its warnings are returned (naming ``out``)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DatasetWarning)
+        try:
+            load_dataset(tmp)
+        except CaptureImportError:
+            raise
+        except DatasetError as exc:
+            hint = ("; the mesh must be in the cameras' world frame and unit (the tool's own mesh, or one aligned "
+                    "to its cameras)") if "does not see the mesh" in str(exc) else ""
+            raise CaptureImportError(f"{exc}{hint} (nothing was written to {out})") from None
+    return [str(w.message).replace(str(tmp), str(out)) for w in caught if issubclass(w.category, DatasetWarning)]
+
+
+def _write(shots: list[_Shot], out, options: ImportOptions, overwrite: bool, source: str,
+           inputs: dict) -> ImportResult:
+    out = Path(out)
+    _check_import_output(out, shots, options, overwrite, inputs)
+    mesh = _load_mesh(options)
+    photos = _scan_photos(shots)  # per photo (channels, bits)
+    encoding, bits = _common_encoding(shots, photos, options.encoding)
+    has_dist = [s.dist is not None and bool(np.any(s.dist != 0)) for s in shots]
+    undistort = options.undistort and any(has_dist)
+    msgs = _distortion_notes(shots, has_dist, options, undistort)
+    if options.masks == "alpha" and any(c not in (2, 4) for c, _ in photos):
+        bad = next(s.image for s, (c, _) in zip(shots, photos, strict=True) if c not in (2, 4))
+        raise CaptureImportError(f"{bad}: has no alpha channel, but masks = 'alpha'; write the photos as RGBA "
+                                 f"PNG or give "
+                                 "a mask folder")
+    fmt = _Format(encoding, bits, _import_saturation(options, encoding, bits, undistort), undistort)
 
     with atomic_folder(out, force=overwrite, error=CaptureImportError, force_flag="overwrite=True "
                                                                                   "(--overwrite)") as tmp:
         (tmp / IMAGE_DIR).mkdir()
         save_mesh(mesh, tmp / "mesh.obj")
         entries, n_masks = [], 0
-        out_bits = 16 if (undistort and encoding == "srgb") else bits
         for i, (s, (_, b)) in enumerate(zip(shots, photos, strict=True)):
-            arr = _read_photo(s.image, s.where)[0] if undistort else None
-            mask = _mask_for(s, options, (s.camera.height, s.camera.width), s.where)
-            if undistort:
-                m1, m2 = _undistort_maps(s.camera, s.dist if s.dist is not None else np.zeros(4))
-                x = arr.astype(np.float32)
-                if b:
-                    x /= np.float32(top)
-                alpha = None
-                if x.shape[2] in (2, 4):
-                    alpha = x[..., -1] >= 0.5
-                    x = x[..., :-1]
-                if saturation is None:
-                    sat = np.zeros(x.shape[:2], bool)
-                else:  # x is in file units: code / top for integer photos, as stored for float ones
-                    level = saturation / top if (b and encoding == "srgb") else float(saturation)
-                    sat = (x >= level * (1 - 1e-6)).any(-1)
-                lin = decode(torch.from_numpy(np.ascontiguousarray(x)), "srgb").numpy() if encoding == "srgb" else x
-                und = cv2.remap(np.ascontiguousarray(lin), m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-                if und.ndim == 2:
-                    und = und[:, :, None]
-                good = cv2.remap((~sat).astype(np.float32), m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                 borderValue=0.0) >= 1 - 1e-4
-                for extra in (mask, alpha):
-                    if extra is not None:
-                        good &= cv2.remap(extra.astype(np.uint8), m1, m2, cv2.INTER_NEAREST,
-                                          borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
-                mask = good
-                if encoding == "srgb":
-                    rel = f"{IMAGE_DIR}/{i:03d}.png"
-                    write_png(tmp / rel, und, bits=16, transfer="srgb")
-                else:
-                    rel = f"{IMAGE_DIR}/{i:03d}.exr"
-                    write_exr(tmp / rel, und)
-            else:
-                rel = f"{IMAGE_DIR}/{i:03d}{s.image.suffix.lower()}"
-                shutil.copyfile(s.image, tmp / rel)
-            entry = {"file": rel, "name": s.name, "camera": s.camera.to_dict(),
-                     "lights": [light_to_dict(x) for x in options.world_lights(s.camera)],
-                     "exposure": float(options.exposure)}
-            if mask is not None:
-                mrel = f"{MASK_DIR}/{i:03d}.png"
-                (tmp / MASK_DIR).mkdir(exist_ok=True)
-                write_png(tmp / mrel, torch.from_numpy(mask.astype(np.float64)), bits=8, transfer="linear")
-                entry["mask"] = mrel
-                n_masks += 1
-            elif options.masks == "alpha":
+            entry = _write_shot(tmp, i, s, b, options, fmt)
+            if "mask" in entry or options.masks == "alpha":
                 n_masks += 1
             entries.append(entry)
-        doc = {"format": FORMAT, "version": VERSION, "mesh": "mesh.obj", "encoding": encoding}
-        if encoding == "srgb":
-            doc["bits"] = out_bits
-            doc["saturation"] = (1 << out_bits) - 1 if undistort else int(saturation)
-        else:
-            doc["saturation"] = saturation
-        doc["images"] = entries
-        doc["meta"] = {"importer": source, "undistorted": bool(undistort), "unwrapped": options.unwrap,
-                       "flash_camera_frame": [{"position": list(f.position), "intensity": list(f.intensity)}
-                                              for f in options.flash]}
+        doc = _import_scene_doc(entries, fmt, options, source)
         (tmp / SCENE_FILE).write_text(scene_json_text(jsonable(doc)) + "\n", encoding="utf-8")
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", DatasetWarning)
-            try:
-                load_dataset(tmp)
-            except CaptureImportError:
-                raise
-            except DatasetError as exc:
-                hint = ("; the mesh must be in the cameras' world frame and unit (the tool's own mesh, or one aligned "
-                        "to its cameras)") if "does not see the mesh" in str(exc) else ""
-                raise CaptureImportError(f"{exc}{hint} (nothing was written to {out})") from None
-        msgs += [str(w.message).replace(str(tmp), str(out)) for w in caught
-                 if issubclass(w.category, DatasetWarning)]
-    return ImportResult(out, source, len(shots), encoding, out_bits if encoding == "srgb" else bits,
+        msgs += _validate_import(tmp, out)
+    return ImportResult(out, source, len(shots), encoding, fmt.out_bits if encoding == "srgb" else bits,
                         len(shots) if undistort else 0, n_masks, options.unwrap, msgs)
