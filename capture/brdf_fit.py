@@ -68,6 +68,7 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -282,6 +283,125 @@ def _initial(model: Model, params: list[_Param], init: Mapping[str, Tensor] | No
     return x
 
 
+def _check_fit_args(model: Model | str, procedure: str, restarts: int) -> Model:
+    """The model (looked up when given by name), after checking it, the procedure and the restarts."""
+    if isinstance(model, str):
+        model = materials.get(model)
+    if not isinstance(model, Model):
+        raise TypeError(f"fit_brdf: model must be a materials.Model or a registry name, got {type(model).__name__}")
+    if procedure not in ("nielsen", "joint"):
+        raise ValueError(f"fit_brdf: unknown procedure '{procedure}'; use 'nielsen' or 'joint'")
+    if int(restarts) < 1:
+        raise ValueError(f"fit_brdf: restarts must be ≥ 1, got {restarts}")
+    return model
+
+
+def _stages(params: Sequence[_Param], procedure: str) -> list[tuple[str, ...]]:
+    """The parameter names optimised in each stage: all at once ("joint"), or Nielsen's three stages."""
+    names = [p.spec.name for p in params]
+    if procedure == "joint":
+        stages = [tuple(names)]
+    else:
+        groups = {g: tuple(p.spec.name for p in params if _group(p.spec) == g)
+                  for g in ("diffuse", "specular", "shape")}
+        stages = [groups["diffuse"] + groups["specular"], groups["shape"], groups["shape"] + groups["specular"]]
+    return [s for s in stages if s]
+
+
+@dataclass(frozen=True)
+class _Objective:
+    """The cosine-weighted relative L1 of ``model`` against ``meas`` as a function of the unconstrained
+    parameters; ``smooth`` gives its pseudo-Huber form (for L-BFGS)."""
+
+    model: Model
+    params: Sequence[_Param]
+    samples: SampleSet
+    meas: Tensor
+    w: Tensor
+    norm: Tensor
+    delta: Tensor
+
+    @classmethod
+    def build(cls, model: Model, params: Sequence[_Param], samples: SampleSet, meas: Tensor,
+              exclude_grazing: bool) -> _Objective:
+        w = samples.weight.expand_as(meas)
+        if exclude_grazing:
+            w = torch.where(samples.grazing.expand_as(meas), torch.zeros_like(w), w)
+        norm = (w * meas.abs()).sum().clamp_min(1e-30)
+        delta = 1e-4 * norm / w.numel()
+        return cls(model, params, samples, meas, w, norm, delta)
+
+    def values(self, u: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        return {p.spec.name: p.value(u[p.spec.name]) for p in self.params}
+
+    def __call__(self, u: Mapping[str, Tensor], smooth: bool) -> Tensor:
+        r = self.w * (self.model.brdf(self.samples.g, self.values(u)) - self.meas)
+        if smooth:
+            return (torch.sqrt(r * r + self.delta * self.delta) - self.delta).sum() / self.norm
+        return r.abs().sum() / self.norm
+
+
+class _Budget(NamedTuple):
+    """Per-stage optimiser budget."""
+
+    adam_steps: int
+    adam_lr: float
+    lbfgs_steps: int
+
+
+def _adam(objective: _Objective, u: dict[str, Tensor], leaves: list[Tensor], steps: int, lr: float) -> None:
+    """Adam with a cosine-annealed rate on ``leaves`` (in place); ends at the best iterate seen."""
+    opt = torch.optim.Adam(leaves, lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps, eta_min=lr * 0.05)
+    best, best_u = math.inf, [x.detach().clone() for x in leaves]
+    for _ in range(steps):
+        opt.zero_grad(set_to_none=True)
+        loss = objective(u, smooth=False)
+        if loss.item() < best:
+            best, best_u = loss.item(), [x.detach().clone() for x in leaves]
+        loss.backward()
+        opt.step()
+        sched.step()
+    with torch.no_grad():
+        if objective(u, smooth=False).item() > best:
+            for x, b in zip(leaves, best_u, strict=True):
+                x.copy_(b)
+
+
+def _lbfgs(objective: _Objective, u: dict[str, Tensor], leaves: list[Tensor], steps: int) -> None:
+    """L-BFGS on the smooth objective (in place); undone when it does not lower the L1 objective."""
+    before = [x.detach().clone() for x in leaves]
+    with torch.no_grad():
+        loss_before = objective(u, smooth=False).item()
+    opt = torch.optim.LBFGS(leaves, lr=1.0, max_iter=steps, history_size=20,
+                            line_search_fn="strong_wolfe", tolerance_grad=1e-10, tolerance_change=1e-12)
+
+    def closure():
+        opt.zero_grad(set_to_none=True)
+        loss = objective(u, smooth=True)
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    with torch.no_grad():
+        after = objective(u, smooth=False).item()
+        if not math.isfinite(after) or after > loss_before:
+            for x, b in zip(leaves, before, strict=True):
+                x.copy_(b)
+
+
+def _run_stage(objective: _Objective, u: dict[str, Tensor], free: tuple[str, ...], budget: _Budget,
+               device) -> dict[str, Tensor]:
+    """One stage: Adam then L-BFGS on the ``free`` parameters, the others held."""
+    u = {k: v.detach().clone().to(device) for k, v in u.items()}
+    leaves = [u[n].requires_grad_() for n in free]
+    if budget.adam_steps > 0:
+        _adam(objective, u, leaves, budget.adam_steps, budget.adam_lr)
+    if budget.lbfgs_steps > 0:
+        _lbfgs(objective, u, leaves, budget.lbfgs_steps)
+    return {k: v.detach() for k, v in u.items()}
+
+
 def fit_brdf(model: Model | str, target: Model | Callable[[Angles], Tensor], samples: SampleSet | None = None, *,
              procedure: str = "joint", restarts: int = 3, init: Mapping[str, Tensor] | None = None,
              target_params: Mapping[str, Tensor] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
@@ -304,14 +424,7 @@ def fit_brdf(model: Model | str, target: Model | Callable[[Angles], Tensor], sam
         :class:`FitResult`.
     """
     t0 = time.perf_counter()
-    if isinstance(model, str):
-        model = materials.get(model)
-    if not isinstance(model, Model):
-        raise TypeError(f"fit_brdf: model must be a materials.Model or a registry name, got {type(model).__name__}")
-    if procedure not in ("nielsen", "joint"):
-        raise ValueError(f"fit_brdf: unknown procedure '{procedure}'; use 'nielsen' or 'joint'")
-    if int(restarts) < 1:
-        raise ValueError(f"fit_brdf: restarts must be ≥ 1, got {restarts}")
+    model = _check_fit_args(model, procedure, restarts)
     if samples is None:
         samples = make_samples(dtype=torch.float64)
     if init is not None:
@@ -322,70 +435,9 @@ def fit_brdf(model: Model | str, target: Model | Callable[[Angles], Tensor], sam
     dtype, device = samples.weight.dtype, samples.weight.device
     meas = evaluate_target(target, samples, target_params)
     params = [_bounds(s, bounds or {}) for s in model.params]
-    names = [p.spec.name for p in params]
-
-    if procedure == "joint":
-        stages = [tuple(names)]
-    else:
-        groups = {g: tuple(p.spec.name for p in params if _group(p.spec) == g)
-                  for g in ("diffuse", "specular", "shape")}
-        stages = [groups["diffuse"] + groups["specular"], groups["shape"], groups["shape"] + groups["specular"]]
-    stages = [s for s in stages if s]
-
-    w = samples.weight.expand_as(meas)
-    if exclude_grazing:
-        w = torch.where(samples.grazing.expand_as(meas), torch.zeros_like(w), w)
-    norm = (w * meas.abs()).sum().clamp_min(1e-30)
-    delta = 1e-4 * norm / w.numel()
-
-    def values(u: Mapping[str, Tensor]) -> dict[str, Tensor]:
-        return {p.spec.name: p.value(u[p.spec.name]) for p in params}
-
-    def objective(u: Mapping[str, Tensor], smooth: bool) -> Tensor:
-        r = w * (model.brdf(samples.g, values(u)) - meas)
-        if smooth:
-            return (torch.sqrt(r * r + delta * delta) - delta).sum() / norm
-        return r.abs().sum() / norm
-
-    def run_stage(u: dict[str, Tensor], free: tuple[str, ...]) -> dict[str, Tensor]:
-        u = {k: v.detach().clone().to(device) for k, v in u.items()}
-        leaves = [u[n].requires_grad_() for n in free]
-        if adam_steps > 0:
-            opt = torch.optim.Adam(leaves, lr=adam_lr)
-            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=adam_steps, eta_min=adam_lr * 0.05)
-            best, best_u = math.inf, [x.detach().clone() for x in leaves]
-            for _ in range(adam_steps):
-                opt.zero_grad(set_to_none=True)
-                loss = objective(u, smooth=False)
-                if loss.item() < best:
-                    best, best_u = loss.item(), [x.detach().clone() for x in leaves]
-                loss.backward()
-                opt.step()
-                sched.step()
-            with torch.no_grad():
-                if objective(u, smooth=False).item() > best:
-                    for x, b in zip(leaves, best_u, strict=True):
-                        x.copy_(b)
-        if lbfgs_steps > 0:
-            before = [x.detach().clone() for x in leaves]
-            with torch.no_grad():
-                loss_before = objective(u, smooth=False).item()
-            opt = torch.optim.LBFGS(leaves, lr=1.0, max_iter=lbfgs_steps, history_size=20,
-                                    line_search_fn="strong_wolfe", tolerance_grad=1e-10, tolerance_change=1e-12)
-
-            def closure():
-                opt.zero_grad(set_to_none=True)
-                loss = objective(u, smooth=True)
-                loss.backward()
-                return loss
-
-            opt.step(closure)
-            with torch.no_grad():
-                after = objective(u, smooth=False).item()
-                if not math.isfinite(after) or after > loss_before:
-                    for x, b in zip(leaves, before, strict=True):
-                        x.copy_(b)
-        return {k: v.detach() for k, v in u.items()}
+    stages = _stages(params, procedure)
+    objective = _Objective.build(model, params, samples, meas, exclude_grazing)
+    budget = _Budget(adam_steps, adam_lr, lbfgs_steps)
 
     spread = any(_group(p.spec) == "shape" and math.isfinite(p.hi) for p in params)
     n_starts = int(restarts) if spread else 1  # identical starts would repeat the same fit
@@ -393,14 +445,14 @@ def fit_brdf(model: Model | str, target: Model | Callable[[Angles], Tensor], sam
     for k in range(n_starts):
         u = {n: v.to(device) for n, v in _initial(model, params, init, k, n_starts, dtype).items()}
         for free in stages:
-            u = run_stage(u, free)
+            u = _run_stage(objective, u, free, budget, device)
         with torch.no_grad():
             obj = objective(u, smooth=False).item()
         per_restart.append(obj)
         if obj < best_obj:
             best_obj, best_u = obj, u
     with torch.no_grad():
-        final = values(best_u)
+        final = objective.values(best_u)
         errs = errors(model.brdf(samples.g, final), meas, samples)
     return FitResult(
         params={k: v.detach().to("cpu", torch.float64) for k, v in final.items()},
