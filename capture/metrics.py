@@ -340,6 +340,120 @@ def _name_direction(d: Tensor | None, up: Tensor) -> str:
     return f"{where} ({axis}; mean normal {vec})"
 
 
+def _check_advice_args(cos, highlight_deg, block, up) -> Tensor:
+    """Validate :func:`coverage_advice`'s options; returns ``up`` as a unit float64 vector."""
+    if isinstance(cos, bool) or not isinstance(cos, (int, float)) or not -1 < cos < 1:
+        raise MetricsError(f"coverage_advice: cos must be a number in (−1, 1), got {cos!r}")
+    if isinstance(highlight_deg, bool) or not isinstance(highlight_deg, (int, float)) or not 0 < highlight_deg < 90:
+        raise MetricsError(f"coverage_advice: highlight_deg must be a number of degrees in (0, 90), got "
+                           f"{highlight_deg!r}")
+    if block is not None and (isinstance(block, bool) or not isinstance(block, int) or block < 1):
+        raise MetricsError(f"coverage_advice: block must be a positive integer or None, got {block!r}")
+    up_t = torch.as_tensor(up, dtype=torch.float64).reshape(-1)
+    if up_t.numel() != 3 or not bool(torch.isfinite(up_t).all()) or float(up_t.norm()) == 0:
+        raise MetricsError(f"coverage_advice: up must be a non-zero 3-vector, got {up!r}")
+    return up_t / up_t.norm()
+
+
+def _advice_normals(obs, normals: Tensor | None) -> Tensor:
+    """``[T, 3]`` float64 texel normals: the given ones, or the mean of each texel's samples' normals."""
+    H, W = obs.map_size
+    T = H * W
+    dev = obs.device
+    if normals is None:
+        if obs.n is None:
+            raise MetricsError("coverage_advice: the observations carry no normals (obs.n); pass normals= "
+                               "(capture.metrics.texel_normals of the mesh)")
+        acc = torch.zeros(T, 3, dtype=torch.float64, device=dev).index_add_(0, obs.texel, obs.n.double())
+        return acc / acc.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    if not isinstance(normals, Tensor) or tuple(normals.shape) != (H, W, 3):
+        raise MetricsError(f"coverage_advice: normals must be a [{H}, {W}, 3] tensor like the observations' maps, "
+                           f"got {getattr(normals, 'shape', type(normals).__name__)}")
+    return normals.reshape(T, 3).double().to(dev)
+
+
+def _advice_surface(obs, surface: Tensor | None, nrm: Tensor, given_normals: bool, read: Tensor) -> Tensor:
+    """``[T]`` bool, the surface texels: ``surface``, else where the given normals are set; always those ``read``."""
+    H, W = obs.map_size
+    T = H * W
+    dev = obs.device
+    if surface is None:
+        surf = nrm.norm(dim=-1) > 0.5 if given_normals else torch.zeros(T, dtype=torch.bool, device=dev)
+    else:
+        if not isinstance(surface, Tensor) or surface.dtype != torch.bool or tuple(surface.shape) != (H, W):
+            raise MetricsError(f"coverage_advice: surface must be an [{H}, {W}] bool tensor, got "
+                               f"{getattr(surface, 'dtype', type(surface).__name__)} "
+                               f"{tuple(getattr(surface, 'shape', ()))}")
+        surf = surface.reshape(T).to(dev)
+    return surf | read
+
+
+def _per_texel(texels: Tensor, T: int, device) -> Tensor:
+    out = torch.zeros(T, dtype=torch.bool, device=device)
+    out[texels] = True
+    return out
+
+
+def _seen_lit_highlighted(obs, cos: float, highlight_deg: float) -> tuple[Tensor, Tensor, Tensor]:
+    """``[T]`` bool each: the texels some sample sees at n·v > cos, some pair also lights at n·l > cos, and some
+    pair's half vector comes within ``highlight_deg`` of the normal."""
+    H, W = obs.map_size
+    T = H * W
+    dev = obs.device
+    nv_s = obs.v is not None and obs.n is not None
+    nv = (obs.n * obs.v).sum(-1) if nv_s else None
+    tex_pair = obs.texel[obs.pair_sample]
+    nv_pair, nl_pair = obs.angles.nv.reshape(-1), obs.angles.nl.reshape(-1)
+    if nv is None:          # no per-sample vectors: the pairs' cosines (samples without a pair are not judged)
+        seen = _per_texel(tex_pair[nv_pair > cos], T, dev)
+    else:
+        seen = _per_texel(obs.texel[nv > cos], T, dev)
+    lit = _per_texel(tex_pair[(nv_pair > cos) & (nl_pair > cos)], T, dev)
+    hl = _per_texel(tex_pair[obs.angles.nh.reshape(-1) >= math.cos(math.radians(highlight_deg))], T, dev)
+    return seen, lit, hl
+
+
+def _auto_block(obs, n_surf: int) -> int:
+    """About the texel spacing of one view's samples, odd, in [1, 15] (see :func:`coverage_advice`)."""
+    views = max(int(obs.n_views), 1)
+    b = math.ceil(math.sqrt(max(n_surf, 1) * views / (2 * max(obs.n_samples, 1))))
+    block = min(max(b, 1), 15)
+    return block + 1 - block % 2
+
+
+def _grow(m: Tensor, block: int, H: int, W: int) -> Tensor:
+    """``[H·W]`` bool ``m`` dilated by a ``block`` × ``block`` square."""
+    import torch.nn.functional as F
+
+    x = m.reshape(1, 1, H, W).float()
+    return F.max_pool2d(x, block, 1, block // 2)[..., :H, :W].reshape(H * W) > 0.5
+
+
+def _advice_sentence(key: str, named: str, frac: float, cos: float, highlight_deg: float) -> str:
+    pct = f"{frac:.0%}"
+    if key == "unseen":
+        return f"add views from {named}: {pct} of the surface texels are never seen at n·v > {cos:g}"
+    if key == "unlit":
+        return (f"add light directions from {named}: {pct} of the surface texels are seen but never lit "
+                f"at n·l > {cos:g} in a view that sees them at n·v > {cos:g}")
+    return (f"add a light near the mirror direction of a view for texels facing {named}: {pct} of "
+            f"the surface texels are seen and lit but never show a highlight (no half vector within "
+            f"{highlight_deg:g}° of the normal), so their f0 and roughness rest on the lobe's tail")
+
+
+def _texel_set(m: Tensor, nrm: Tensor, n_surf: int, up: Tensor) -> dict:
+    """A set's entry of :func:`coverage_advice`: texels, fraction, mean normal direction and its name."""
+    k = int(m.sum())
+    frac = k / n_surf if n_surf else 0.0
+    d = None
+    if k:
+        mean = nrm[m].sum(0) / k
+        if float(mean.norm()) >= 0.3:
+            d = mean / mean.norm()
+    named = _name_direction(d.cpu() if d is not None else None, up)
+    return {"texels": k, "fraction": frac, "direction": d.tolist() if d is not None else None, "named": named}
+
+
 def coverage_advice(obs, normals: Tensor | None = None, surface: Tensor | None = None, *, cos: float = WELL_LIT_COS,
                     highlight_deg: float = HIGHLIGHT_DEG, specular: bool = True, block: int | None = None,
                     up=(0.0, 0.0, 1.0)) -> dict:
@@ -378,70 +492,17 @@ def coverage_advice(obs, normals: Tensor | None = None, surface: Tensor | None =
         normals spread so that their mean is shorter than 0.3), "named" (words)}, "advice": [sentences]}``;
         ``no_highlight`` only with ``specular``. Advice names each set of at least :data:`ADVICE_MIN_FRACTION`.
     """
-    import torch.nn.functional as F
-
     H, W = obs.map_size
-    T = H * W
-    if isinstance(cos, bool) or not isinstance(cos, (int, float)) or not -1 < cos < 1:
-        raise MetricsError(f"coverage_advice: cos must be a number in (−1, 1), got {cos!r}")
-    if isinstance(highlight_deg, bool) or not isinstance(highlight_deg, (int, float)) or not 0 < highlight_deg < 90:
-        raise MetricsError(f"coverage_advice: highlight_deg must be a number of degrees in (0, 90), got "
-                           f"{highlight_deg!r}")
-    if block is not None and (isinstance(block, bool) or not isinstance(block, int) or block < 1):
-        raise MetricsError(f"coverage_advice: block must be a positive integer or None, got {block!r}")
-    up_t = torch.as_tensor(up, dtype=torch.float64).reshape(-1)
-    if up_t.numel() != 3 or not bool(torch.isfinite(up_t).all()) or float(up_t.norm()) == 0:
-        raise MetricsError(f"coverage_advice: up must be a non-zero 3-vector, got {up!r}")
-    up_t = up_t / up_t.norm()
-    dev = obs.device
-    read = obs.footprint().reshape(T).to(dev)
-    if normals is None:
-        if obs.n is None:
-            raise MetricsError("coverage_advice: the observations carry no normals (obs.n); pass normals= "
-                               "(capture.metrics.texel_normals of the mesh)")
-        acc = torch.zeros(T, 3, dtype=torch.float64, device=dev).index_add_(0, obs.texel, obs.n.double())
-        nrm = acc / acc.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    else:
-        if not isinstance(normals, Tensor) or tuple(normals.shape) != (H, W, 3):
-            raise MetricsError(f"coverage_advice: normals must be a [{H}, {W}, 3] tensor like the observations' maps, "
-                               f"got {getattr(normals, 'shape', type(normals).__name__)}")
-        nrm = normals.reshape(T, 3).double().to(dev)
-    if surface is None:
-        surf = nrm.norm(dim=-1) > 0.5 if normals is not None else torch.zeros(T, dtype=torch.bool, device=dev)
-    else:
-        if not isinstance(surface, Tensor) or surface.dtype != torch.bool or tuple(surface.shape) != (H, W):
-            raise MetricsError(f"coverage_advice: surface must be an [{H}, {W}] bool tensor, got "
-                               f"{getattr(surface, 'dtype', type(surface).__name__)} "
-                               f"{tuple(getattr(surface, 'shape', ()))}")
-        surf = surface.reshape(T).to(dev)
-    surf = surf | read
+    up_t = _check_advice_args(cos, highlight_deg, block, up)
+    read = obs.footprint().reshape(H * W).to(obs.device)
+    nrm = _advice_normals(obs, normals)
+    surf = _advice_surface(obs, surface, nrm, normals is not None, read)
     n_surf = int(surf.sum())
-
-    def per_texel(texels: Tensor) -> Tensor:
-        out = torch.zeros(T, dtype=torch.bool, device=dev)
-        out[texels] = True
-        return out
-
-    nv_s = obs.v is not None and obs.n is not None
-    nv = (obs.n * obs.v).sum(-1) if nv_s else None
-    tex_pair = obs.texel[obs.pair_sample]
-    nv_pair, nl_pair = obs.angles.nv.reshape(-1), obs.angles.nl.reshape(-1)
-    if nv is None:          # no per-sample vectors: the pairs' cosines (samples without a pair are not judged)
-        seen = per_texel(tex_pair[nv_pair > cos])
-    else:
-        seen = per_texel(obs.texel[nv > cos])
-    lit = per_texel(tex_pair[(nv_pair > cos) & (nl_pair > cos)])
-    hl = per_texel(tex_pair[obs.angles.nh.reshape(-1) >= math.cos(math.radians(highlight_deg))])
+    seen, lit, hl = _seen_lit_highlighted(obs, cos, highlight_deg)
     if block is None:
-        views = max(int(obs.n_views), 1)
-        b = math.ceil(math.sqrt(max(n_surf, 1) * views / (2 * max(obs.n_samples, 1))))
-        block = min(max(b, 1), 15)
-        block += 1 - block % 2
+        block = _auto_block(obs, n_surf)
     if block > 1:
-        def grow(m: Tensor) -> Tensor:
-            x = m.reshape(1, 1, H, W).float()
-            return F.max_pool2d(x, block, 1, block // 2)[..., :H, :W].reshape(T) > 0.5
-        seen, lit, hl = grow(seen), grow(lit), grow(hl)
+        seen, lit, hl = (_grow(m, block, H, W) for m in (seen, lit, hl))
 
     sets = {"unseen": surf & ~seen, "unlit": surf & seen & ~lit}
     if specular:
@@ -449,26 +510,8 @@ def coverage_advice(obs, normals: Tensor | None = None, surface: Tensor | None =
     out = {"texels": n_surf, "block": block, "cos": float(cos), "highlight_deg": float(highlight_deg)}
     advice = []
     for key, m in sets.items():
-        k = int(m.sum())
-        frac = k / n_surf if n_surf else 0.0
-        d = None
-        if k:
-            mean = nrm[m].sum(0) / k
-            if float(mean.norm()) >= 0.3:
-                d = mean / mean.norm()
-        named = _name_direction(d.cpu() if d is not None else None, up_t)
-        out[key] = {"texels": k, "fraction": frac, "direction": d.tolist() if d is not None else None,
-                    "named": named}
-        if frac >= ADVICE_MIN_FRACTION:
-            pct = f"{frac:.0%}"
-            if key == "unseen":
-                advice.append(f"add views from {named}: {pct} of the surface texels are never seen at n·v > {cos:g}")
-            elif key == "unlit":
-                advice.append(f"add light directions from {named}: {pct} of the surface texels are seen but never lit "
-                              f"at n·l > {cos:g} in a view that sees them at n·v > {cos:g}")
-            else:
-                advice.append(f"add a light near the mirror direction of a view for texels facing {named}: {pct} of "
-                              f"the surface texels are seen and lit but never show a highlight (no half vector within "
-                              f"{highlight_deg:g}° of the normal), so their f0 and roughness rest on the lobe's tail")
+        out[key] = _texel_set(m, nrm, n_surf, up_t)
+        if out[key]["fraction"] >= ADVICE_MIN_FRACTION:
+            advice.append(_advice_sentence(key, out[key]["named"], out[key]["fraction"], cos, highlight_deg))
     out["advice"] = advice
     return out
