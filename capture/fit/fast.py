@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -72,6 +74,206 @@ FOOTPRINT_FREE_STEPS = 6
 FOOTPRINT_TEXTURE_PRIOR = 1e-3
 
 
+class _Plan(NamedTuple):
+    """The options of :func:`solve_fast` whose defaults depend on the others, resolved."""
+
+    iterations: int
+    min_iterations: int
+    lm_tol: float
+    joint: bool
+    share: bool
+    grid: int
+
+
+def _plan(opts: FitOptions) -> _Plan:
+    """Resolve the per-texel LM's iterations and stopping rule, whether the joint refinement and the sharing run,
+    and the closed-form grid."""
+    iterations, min_iterations, lm_tol = opts.iterations, 0, opts.tol
+    if iterations is None:
+        iterations = 10 if opts.sampling == "bilinear" else 40
+        if opts.sampling == "bilinear":
+            min_iterations, lm_tol = BILINEAR_LM_MIN, max(opts.tol, BILINEAR_LM_TOL)
+    joint = opts.sampling == "bilinear" and opts.joint_iterations != 0
+    share = joint if opts.share is None else bool(opts.share)
+    grid = opts.grid if opts.grid is not None else (16 if share else 32)
+    return _Plan(iterations, min_iterations, lm_tol, joint, share, grid)
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """The problem of :func:`solve_fast` and its resolved options, shared by its stages."""
+
+    model: Model
+    obs: Observations
+    layout: Layout
+    groups: list
+    opts: FitOptions
+    delta: float
+    noise: tuple[float, float]
+    progress: Callable[[str, int, float], None] | None
+
+    def refine(self, start: Tensor, iterations: int, cg_iterations: int, sharing: float, anchor_weight: float,
+               footprints=None, anchor_target: Tensor | None = None) -> tuple[Tensor, dict]:
+        """:func:`refine_joint` from θ ``start`` with the solver's loss, noise and prior parameters."""
+        return refine_joint(self.model, self.obs, self.layout, start, self.groups, loss=self.opts.loss,
+                            delta=self.delta, iterations=iterations, cg_iterations=cg_iterations, sharing=sharing,
+                            progress=self.progress,
+                            sharing_params=None if self.opts.sharing_albedo else shared_default(self.layout),
+                            noise=self.noise, noise_adaptive=("albedo",), anchor_weight=anchor_weight,
+                            footprints=footprints, anchor_target=anchor_target)
+
+
+@dataclass
+class _Sharing:
+    """The reflectance sharing's state in :func:`solve_fast`: the per-texel fit it started from, the posterior std
+    that chose its anchors, whether they were scarce, its info and the (labels, anchors) of the materials kept."""
+
+    theta_texel: Tensor
+    names: list[str]
+    std: dict
+    observed_n: Tensor
+    scarce: bool
+    sinfo: dict
+    material_of: tuple
+
+
+def _share(fit: _Fit, theta: Tensor, std: dict, observed_n: Tensor, info: dict) -> tuple[Tensor, _Sharing]:
+    """The reflectance sharing (:func:`share_materials`) from the per-texel fit θ, with its anchors; records it in
+    ``info``."""
+    opts, layout = fit.opts, fit.layout
+    shared_names = shared_default(layout)
+    anchors, factor, scarce = find_anchors(layout, std, observed_n, shared_names, opts.observable_std)
+    theta_texel = theta
+    theta, sinfo = share_materials(fit.model, fit.obs, layout, theta, anchors, candidates=opts.candidates,
+                                   noise=fit.noise, pool_block=opts.pooled)
+    material_of = (sinfo.get("labels"), anchors)
+    info.update(share_s=sinfo["share_s"], materials=sinfo["materials"], shared=sinfo["shared"],
+                share_anchors=int(anchors.sum()), share_anchor_factor=factor, share_pruned=sinfo.get("pruned", 0),
+                pooled_tiles=sinfo.get("pooled_tiles", 0), photo_noise_ratio=sinfo.get("photo_noise_ratio"))
+    return theta, _Sharing(theta_texel, shared_names, std, observed_n, scarce, sinfo, material_of)
+
+
+def _fill_undetermined(layout: Layout, theta: Tensor, canon: Tensor, good: dict, H: int, W: int) -> None:
+    """Replace in place the per-texel parameters of θ the photos do not determine (``good``) by pull-push fills."""
+    T = H * W
+    # per-texel parameters the photos do not determine vary wildly from texel to texel; under
+    # bilinear sampling they would mix into the neighbours' predictions, so they are replaced
+    # by pull-push fills of the observable ones before the joint refinement
+    for s_, o in zip(layout.specs, layout.offsets, strict=True):
+        sl = slice(o, o + s_.channels)
+        ok = good[s_.name].reshape(H, W)
+        if bool(ok.any()) and not bool(ok.all()):
+            filled_c = pull_push(canon[:, sl].reshape(H, W, -1), ok).reshape(T, -1)
+            theta[:, sl] = from_canonical(s_, filled_c)
+
+
+def _joint_stage(fit: _Fit, theta: Tensor, share: bool, sharing: _Sharing | None, info: dict) -> tuple[Tensor, dict]:
+    """The joint refinement on the pixel centres (:func:`refine_joint`), from the sharing's proposal when ``share``
+    (then with its fallback and, where the anchors were scarce, its retry, recorded in ``info``)."""
+    opts = fit.opts
+    # more steps are safe once the sharing's proposal anchors the material parameters (anchor_weight)
+    steps = opts.joint_iterations if opts.joint_iterations is not None else (6 if share else 3)
+    cg_steps = opts.cg_iterations if opts.cg_iterations is not None else (30 if share else 25)
+
+    def joint_from(start):
+        return fit.refine(start, steps, cg_steps, opts.sharing if share else 0.0, opts.anchor_weight if share else 0.0)
+
+    if not share:
+        return joint_from(theta)
+    theta, jinfo, fallback_report = _shared_joint(fit, joint_from, theta, sharing.sinfo, sharing.theta_texel)
+    floor = (noise_floor(fit.obs, fit.noise, info.get("photo_noise_ratio"), opts.loss, fit.delta) if sharing.scarce
+             else math.inf)
+    if jinfo["joint_data_cost"] > MISFIT_RETRY * floor:
+        theta, jinfo, fallback_report = _reseed(fit, joint_from, sharing, floor, (theta, jinfo, fallback_report),
+                                                info)
+    if fallback_report is not None:
+        info["sharing_fallback"] = fallback_report
+    return theta, jinfo
+
+
+def _shared_joint(fit: _Fit, joint_from: Callable[[Tensor], tuple[Tensor, dict]], shared_start: Tensor, sinfo: dict,
+                  theta_texel: Tensor) -> tuple[Tensor, dict, dict | None]:
+    """The joint refinement from the sharing's proposal ``shared_start``, and from the texels' own fits where the
+    photos reject their material when the proposal's fit misses the photos more than the per-texel fit did:
+    ``(theta, jinfo, fallback report or None)``."""
+    opts = fit.opts
+    theta, jinfo = joint_from(shared_start)
+    # the sharing is a proposal. When the refinement it seeds fits the photos worse than the per-texel fit
+    # did, the materials miss part of the object (a layered scene whose metals gave no anchor: every metal
+    # texel took a dielectric, worst view 27 dB): the texels whose own samples reject their material
+    # keep their own fit, the refinement runs again, and the lower data cost wins
+    texel_cost = data_cost(fit.model, fit.layout, fit.obs, theta_texel, sampling=opts.sampling, loss=opts.loss,
+                           delta=fit.delta)
+    if jinfo["joint_data_cost"] > texel_cost:
+        own = unmatched_texels(fit.model, fit.obs, fit.layout, theta_texel, sinfo, noise=fit.noise)
+        retry, rinfo = joint_from(torch.where(own[:, None], theta_texel, shared_start))
+        fallback = rinfo["joint_data_cost"] < jinfo["joint_data_cost"]
+        report = {"per_texel_data_cost": texel_cost, "shared_data_cost": jinfo["joint_data_cost"],
+                  "own_fit_texels": int(own.sum()), "fallback_data_cost": rinfo["joint_data_cost"],
+                  "kept": "fallback" if fallback else "shared"}
+        seconds = jinfo["joint_s"] + rinfo["joint_s"]
+        if fallback:
+            theta, jinfo = retry, rinfo
+        jinfo["joint_s"] = seconds
+        return theta, jinfo, report
+    return theta, jinfo, None
+
+
+def _reseed(fit: _Fit, joint_from: Callable[[Tensor], tuple[Tensor, dict]], sharing: _Sharing, floor: float,
+            first: tuple[Tensor, dict, dict | None], info: dict) -> tuple[Tensor, dict, dict | None]:
+    """The sharing and joint refinement again from the anchors at :data:`ANCHOR_RETRY_FACTOR` × the thresholds
+    (:data:`MISFIT_RETRY`); the ``first`` result ``(theta, jinfo, fallback report)`` or the retry's, whichever has
+    the lower data cost. Records ``share_retry`` in ``info`` (and the retry's materials when it is kept)."""
+    opts, layout = fit.opts, fit.layout
+    theta, jinfo, fallback_report = first
+    anchors2 = anchors_at(layout, sharing.std, sharing.observed_n, sharing.names, opts.observable_std,
+                          ANCHOR_RETRY_FACTOR)
+    start2, sinfo2 = share_materials(fit.model, fit.obs, layout, sharing.theta_texel, anchors2,
+                                     candidates=opts.candidates, noise=fit.noise, pool_block=opts.pooled)
+    retry = {"noise_floor": floor, "data_cost": jinfo["joint_data_cost"], "anchors": int(anchors2.sum()),
+             "factor": ANCHOR_RETRY_FACTOR, "share_s": sinfo2["share_s"], "kept": "first"}
+    if sinfo2["materials"]:
+        theta2, jinfo2, fallback2 = _shared_joint(fit, joint_from, start2, sinfo2, sharing.theta_texel)
+        retry.update(retry_data_cost=jinfo2["joint_data_cost"], joint_s=jinfo2["joint_s"])
+        if jinfo2["joint_data_cost"] < jinfo["joint_data_cost"]:
+            retry["kept"] = "retry"
+            theta, jinfo, fallback_report = theta2, jinfo2, fallback2
+            sharing.material_of = (sinfo2.get("labels"), anchors2)
+            info.update(materials=sinfo2["materials"], share_anchors=int(anchors2.sum()),
+                        share_anchor_factor=ANCHOR_RETRY_FACTOR, share_pruned=sinfo2.get("pruned", 0),
+                        pooled_tiles=sinfo2.get("pooled_tiles", 0))
+    info["share_retry"] = retry
+    return theta, jinfo, fallback_report
+
+
+def _footprint_stage(fit: _Fit, theta: Tensor, footprints, share: bool,
+               sharing: _Sharing | None) -> tuple[Tensor, dict | None]:
+    """The joint LM steps on the photos' pixel footprints (``footprints``: a :class:`PixelOperator`):
+    ``(theta, their info)``, or ``(theta, None)`` when there are none to take."""
+    opts = fit.opts
+    steps = FOOTPRINT_STEPS if opts.footprint_iterations is None else int(opts.footprint_iterations)
+    if not steps > 0:
+        return theta, None
+
+    def footprint_steps(start, n, weight, target=None):
+        return fit.refine(start, n, opts.cg_iterations if opts.cg_iterations is not None else 30,
+                          opts.sharing if share else FOOTPRINT_TEXTURE_PRIOR, weight, footprints=footprints,
+                          anchor_target=target)
+
+    if share and opts.anchor_weight > 0 and sharing.material_of[0] is not None and FOOTPRINT_FREE_STEPS > 0:
+        # the sharing's materials were estimated on the pixel-centre residuals, biased wherever a pixel
+        # mixes texels or a highlight; the first steps run untied, the materials are re-estimated from
+        # the anchors' footprint fits, and the tie resumes to those
+        theta, finfo_free = footprint_steps(theta, FOOTPRINT_FREE_STEPS, 0.0)
+        target = material_targets(fit.layout, fit.layout.canonical(theta), *sharing.material_of)
+        theta, finfo = footprint_steps(theta, steps, opts.anchor_weight, target)
+        finfo["joint_s"] += finfo_free["joint_s"]
+        finfo["joint_history"] = finfo_free["joint_history"] + finfo["joint_history"][1:]
+    else:
+        theta, finfo = footprint_steps(theta, steps, opts.anchor_weight if share else 0.0)
+    return theta, finfo
+
+
 def solve_fast(model: Model, obs: Observations, options: FitOptions | None = None, *,
                init: Mapping[str, Tensor] | None = None, footprints=None,
                progress: Callable[[str, int, float], None] | None = None, **overrides) -> FitResult:
@@ -102,24 +304,9 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
     """
     t0 = time.perf_counter()
     opts = FitOptions.of(options, **overrides)
-    loss, delta, iterations, grid, refine = opts.loss, opts.delta, opts.iterations, opts.grid, opts.refine
-    schedule, smoothness, tol, observable_std = opts.schedule, opts.smoothness, opts.tol, opts.observable_std
-    noise, reproject, sampling = opts.noise, opts.reproject, opts.sampling
-    joint_iterations, cg_iterations = opts.joint_iterations, opts.cg_iterations
-    fill_before_joint = opts.fill_before_joint
-    share, candidates, sharing, sharing_albedo = opts.share, opts.candidates, opts.sharing, opts.sharing_albedo
-    anchor_weight, pooled, footprint_iterations = opts.anchor_weight, opts.pooled, opts.footprint_iterations
-    check_inputs(model, obs, loss)
-    min_iterations, lm_tol = 0, tol
-    if iterations is None:
-        iterations = 10 if sampling == "bilinear" else 40
-        if sampling == "bilinear":
-            min_iterations, lm_tol = BILINEAR_LM_MIN, max(tol, BILINEAR_LM_TOL)
-    joint = sampling == "bilinear" and joint_iterations != 0
-    share = joint if share is None else bool(share)
-    if grid is None:
-        grid = 16 if share else 32
-    delta = default_delta(obs, loss, delta)
+    check_inputs(model, obs, opts.loss)
+    plan = _plan(opts)
+    delta = default_delta(obs, opts.loss, opts.delta)
     layout = Layout.of(model)
     T, H, W = obs.n_texels, *obs.map_size
     theta = init_theta(model, layout, obs, init).to(ACC)
@@ -127,137 +314,48 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
     t_grid = time.perf_counter()
     lin_specs = [s for s in layout.specs if s.linear]
     sep = {s.name: (s.channels == 3 and separable(model, s, obs.dtype)) for s in lin_specs}
-    if sampling == "bilinear" and obs.bilinear_index is None:
+    if opts.sampling == "bilinear" and obs.bilinear_index is None:
         raise SolverError("sampling='bilinear' needs observations built with bilinear=True (observe_views)")
-    noise = check_noise(noise)
-    theta, info = closed_form_init(model, layout, obs, theta, grid, loss, delta, sep, refine,
+    fit = _Fit(model, obs, layout, groups, opts, delta, check_noise(opts.noise), progress)
+    theta, info = closed_form_init(model, layout, obs, theta, plan.grid, opts.loss, delta, sep, opts.refine,
                                     fixed=tuple(init or ()))
     info["grid_s"] = time.perf_counter() - t_grid
     info["options"] = opts.to_dict()
-    theta, history, lm_info = per_texel_lm(model, obs, layout, theta, groups, loss=loss, delta=delta,
-                                           iterations=iterations, schedule=schedule, smoothness=smoothness,
-                                           reproject=reproject, sep=sep, lm_tol=lm_tol,
-                                           min_iterations=min_iterations, progress=progress)
+    theta, history, lm_info = per_texel_lm(model, obs, layout, theta, groups, loss=opts.loss, delta=delta,
+                                           iterations=plan.iterations, schedule=opts.schedule,
+                                           smoothness=opts.smoothness, reproject=opts.reproject, sep=sep,
+                                           lm_tol=plan.lm_tol, min_iterations=plan.min_iterations, progress=progress)
     info.update(lm_info)
     it = lm_info["lm_iterations"]
-    if share or (joint and fill_before_joint):
+    share, joint, sharing = plan.share, plan.joint, None
+    if share or (joint and opts.fill_before_joint):
         canon = layout.canonical(theta)
-        std, observed_n, _ = posterior_std(model, layout, obs, canon, groups, loss=loss, delta=delta, noise=noise)
-        good = determined(layout, std, observed_n, observable_std)
+        std, observed_n, _ = posterior_std(model, layout, obs, canon, groups, loss=opts.loss, delta=delta,
+                                           noise=fit.noise)
+        good = determined(layout, std, observed_n, opts.observable_std)
     if share:
-        shared_names = shared_default(layout)
-        anchors, factor, scarce = find_anchors(layout, std, observed_n, shared_names, observable_std)
-        theta_texel = theta
-        theta, sinfo = share_materials(model, obs, layout, theta, anchors, candidates=candidates, noise=noise,
-                                       pool_block=pooled)
-        material_of = (sinfo.get("labels"), anchors)
-        info.update(share_s=sinfo["share_s"], materials=sinfo["materials"], shared=sinfo["shared"],
-                    share_anchors=int(anchors.sum()), share_anchor_factor=factor, share_pruned=sinfo.get("pruned", 0),
-                    pooled_tiles=sinfo.get("pooled_tiles", 0), photo_noise_ratio=sinfo.get("photo_noise_ratio"))
+        theta, sharing = _share(fit, theta, std, observed_n, info)
         if progress is not None:
             progress("share", it, history[-1])
         # nothing to share from (no texel determined the shared parameters, or the model has none):
         # fall back to the fill, as without sharing
-        share = bool(sinfo["materials"])
+        share = bool(sharing.sinfo["materials"])
     # with pixel footprints and nothing shared, the footprint solve is the joint solve over all texels: the
     # pixel-centre one (and its fill) before it only moves the start (Mitsuba torus, 12 × 256², Lambert: well-lit
     # albedo 0.0110 with it, 0.0107 without, χ² per residual 0.19 both)
-    joint = joint and (share or footprints is None or joint_iterations is not None)
-    if joint and fill_before_joint and not share:
-        # per-texel parameters the photos do not determine vary wildly from texel to texel; under
-        # bilinear sampling they would mix into the neighbours' predictions, so they are replaced
-        # by pull-push fills of the observable ones before the joint refinement
-        for s_, o in zip(layout.specs, layout.offsets, strict=True):
-            sl = slice(o, o + s_.channels)
-            ok = good[s_.name].reshape(H, W)
-            if bool(ok.any()) and not bool(ok.all()):
-                filled_c = pull_push(canon[:, sl].reshape(H, W, -1), ok).reshape(T, -1)
-                theta[:, sl] = from_canonical(s_, filled_c)
+    joint = joint and (share or footprints is None or opts.joint_iterations is not None)
+    if joint and opts.fill_before_joint and not share:
+        _fill_undetermined(layout, theta, canon, good, H, W)
     if joint:
-        # more steps are safe once the sharing's proposal anchors the material parameters (anchor_weight)
-        steps = joint_iterations if joint_iterations is not None else (6 if share else 3)
-        cg_steps = cg_iterations if cg_iterations is not None else (30 if share else 25)
-
-        def joint_from(start):
-            return refine_joint(model, obs, layout, start, groups, loss=loss, delta=delta,
-                                iterations=steps, cg_iterations=cg_steps,
-                                sharing=sharing if share else 0.0, progress=progress,
-                                sharing_params=None if sharing_albedo else shared_default(layout),
-                                noise=noise, noise_adaptive=("albedo",),
-                                anchor_weight=anchor_weight if share else 0.0)
-
-        def shared_joint(shared_start, sinfo):
-            theta, jinfo = joint_from(shared_start)
-            # the sharing is a proposal. When the refinement it seeds fits the photos worse than the per-texel fit
-            # did, the materials miss part of the object (a layered scene whose metals gave no anchor: every metal
-            # texel took a dielectric, worst view 27 dB): the texels whose own samples reject their material
-            # keep their own fit, the refinement runs again, and the lower data cost wins
-            texel_cost = data_cost(model, layout, obs, theta_texel, sampling=sampling, loss=loss, delta=delta)
-            if jinfo["joint_data_cost"] > texel_cost:
-                own = unmatched_texels(model, obs, layout, theta_texel, sinfo, noise=noise)
-                retry, rinfo = joint_from(torch.where(own[:, None], theta_texel, shared_start))
-                fallback = rinfo["joint_data_cost"] < jinfo["joint_data_cost"]
-                report = {"per_texel_data_cost": texel_cost, "shared_data_cost": jinfo["joint_data_cost"],
-                          "own_fit_texels": int(own.sum()), "fallback_data_cost": rinfo["joint_data_cost"],
-                          "kept": "fallback" if fallback else "shared"}
-                seconds = jinfo["joint_s"] + rinfo["joint_s"]
-                if fallback:
-                    theta, jinfo = retry, rinfo
-                jinfo["joint_s"] = seconds
-                return theta, jinfo, report
-            return theta, jinfo, None
-
-        if share:
-            theta, jinfo, fallback_report = shared_joint(theta, sinfo)
-            floor = noise_floor(obs, noise, info.get("photo_noise_ratio"), loss, delta) if scarce else math.inf
-            if jinfo["joint_data_cost"] > MISFIT_RETRY * floor:
-                anchors2 = anchors_at(layout, std, observed_n, shared_names, observable_std, ANCHOR_RETRY_FACTOR)
-                start2, sinfo2 = share_materials(model, obs, layout, theta_texel, anchors2, candidates=candidates,
-                                                 noise=noise, pool_block=pooled)
-                retry = {"noise_floor": floor, "data_cost": jinfo["joint_data_cost"], "anchors": int(anchors2.sum()),
-                         "factor": ANCHOR_RETRY_FACTOR, "share_s": sinfo2["share_s"], "kept": "first"}
-                if sinfo2["materials"]:
-                    theta2, jinfo2, fallback2 = shared_joint(start2, sinfo2)
-                    retry.update(retry_data_cost=jinfo2["joint_data_cost"], joint_s=jinfo2["joint_s"])
-                    if jinfo2["joint_data_cost"] < jinfo["joint_data_cost"]:
-                        retry["kept"] = "retry"
-                        theta, jinfo, fallback_report = theta2, jinfo2, fallback2
-                        material_of = (sinfo2.get("labels"), anchors2)
-                        info.update(materials=sinfo2["materials"], share_anchors=int(anchors2.sum()),
-                                    share_anchor_factor=ANCHOR_RETRY_FACTOR, share_pruned=sinfo2.get("pruned", 0),
-                                    pooled_tiles=sinfo2.get("pooled_tiles", 0))
-                info["share_retry"] = retry
-            if fallback_report is not None:
-                info["sharing_fallback"] = fallback_report
-        else:
-            theta, jinfo = joint_from(theta)
+        theta, jinfo = _joint_stage(fit, theta, share, sharing, info)
         info.update(jinfo)
         history.append(jinfo["joint_history"][-1])
     if footprints is not None:
         footprints = pixel_operator(footprints, T)      # built once for the footprint steps and the posterior
-        steps = FOOTPRINT_STEPS if footprint_iterations is None else int(footprint_iterations)
-        if steps > 0:
-            def footprint_steps(start, n, weight, target=None):
-                return refine_joint(model, obs, layout, start, groups, loss=loss, delta=delta, iterations=n,
-                                    cg_iterations=cg_iterations if cg_iterations is not None else 30,
-                                    sharing=sharing if share else FOOTPRINT_TEXTURE_PRIOR, progress=progress,
-                                    sharing_params=None if sharing_albedo else shared_default(layout),
-                                    noise=noise, noise_adaptive=("albedo",), anchor_weight=weight,
-                                    footprints=footprints, anchor_target=target)
-
-            if share and anchor_weight > 0 and material_of[0] is not None and FOOTPRINT_FREE_STEPS > 0:
-                # the sharing's materials were estimated on the pixel-centre residuals, biased wherever a pixel
-                # mixes texels or a highlight; the first steps run untied, the materials are re-estimated from
-                # the anchors' footprint fits, and the tie resumes to those
-                theta, finfo_free = footprint_steps(theta, FOOTPRINT_FREE_STEPS, 0.0)
-                target = material_targets(layout, layout.canonical(theta), *material_of)
-                theta, finfo = footprint_steps(theta, steps, anchor_weight, target)
-                finfo["joint_s"] += finfo_free["joint_s"]
-                finfo["joint_history"] = finfo_free["joint_history"] + finfo["joint_history"][1:]
-            else:
-                theta, finfo = footprint_steps(theta, steps, anchor_weight if share else 0.0)
+        theta, finfo = _footprint_stage(fit, theta, footprints, share, sharing)
+        if finfo is not None:
             info.update({f"footprint_{k.removeprefix('joint_')}": v for k, v in finfo.items()})
             history.append(finfo["joint_history"][-1])
-    return finalize(model, layout, obs, theta, groups, loss=loss, delta=delta, observable_std=observable_std,
-                     noise=noise, history=history, iterations=it, t0=t0, solver="fast", info=info,
-                     sampling=sampling, keep_unobservable=share, footprints=footprints)
+    return finalize(model, layout, obs, theta, groups, loss=opts.loss, delta=delta,
+                     observable_std=opts.observable_std, noise=fit.noise, history=history, iterations=it, t0=t0,
+                     solver="fast", info=info, sampling=opts.sampling, keep_unobservable=share, footprints=footprints)
