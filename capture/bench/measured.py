@@ -22,7 +22,9 @@ import math
 import tempfile
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor
@@ -38,6 +40,9 @@ from ..synth.measured import (
     measured_scene,
     render_measured_scene,
 )
+
+if TYPE_CHECKING:
+    from ..brdf_fit import FitResult, SampleSet
 
 __all__ = ["BENCH_MODELS", "capture_benchmark", "benchmark_table"]
 
@@ -57,6 +62,146 @@ def _region_medians(maps: Mapping[str, Tensor], regions: Tensor, observed: Tenso
             continue
         out[int(rid)] = {k: m[sel].double().median(dim=0).values for k, m in maps.items()}
     return out
+
+
+class _Scene(NamedTuple):
+    """The rendered scene, its training dataset and what the reconstructions are scored against."""
+
+    images: list[Tensor]
+    preps: list
+    regions: Tensor  # [T, T] region id per texel
+    held: list[int]
+    dataset: Path
+    materials: tuple[str, ...]
+    targets: dict  # material name → its measured model
+
+
+@dataclass
+class _Reference:
+    """fit_brdf's pseudo ground truth: its samples and restarts, and the fits made so far by (model, material)."""
+
+    samples: SampleSet
+    restarts: int
+    fits: dict[tuple[str, str], FitResult] = field(default_factory=dict)
+
+
+def _prepare_scene(config: MeasuredSceneConfig, work: Path) -> _Scene:
+    """Render the scene and write the training dataset (every view but the held-out ones) into ``work``."""
+    images, views, preps, mesh, regions = render_measured_scene(config)
+    held = _heldout(len(views))
+    if not held:
+        raise MeasuredSceneError("capture_benchmark: need at least 4 views (every 4th is held out)")
+    train = [i for i in range(len(views)) if i not in held]
+    ds_path = make_measured_scene(config, work / "dataset", overwrite=True, views=train)
+    targets = dict(zip(config.materials, config.models(), strict=True))
+    return _Scene(images, preps, regions, held, ds_path, config.materials, targets)
+
+
+def _read_maps(out: Path, mdl) -> dict[str, Tensor]:
+    """The model's maps from the reconstruction folder ``out``, each ``[H, W, channels]``."""
+    maps = {}
+    for spec in mdl.params:
+        m = read_exr(out / f"{spec.name}.exr")
+        m = m if m.dim() == 3 else m[..., None]
+        maps[spec.name] = m[..., :spec.channels] if m.shape[-1] >= spec.channels else m[..., :1]
+    return maps
+
+
+def _heldout_scores(mdl, maps: Mapping[str, Tensor], scene: _Scene) -> tuple[float, float]:
+    """Mean PSNR and SSIM of the held-out views re-rendered with ``maps``, over the lit object pixels."""
+    from ..metrics import image_metrics
+
+    ps, ss = [], []
+    with torch.no_grad():
+        for i in scene.held:
+            prep = scene.preps[i]
+            rad = shade(mdl, maps, prep, sampling="nearest")
+            g = prep.gbuffer
+            lit = torch.zeros(len(g), 3)
+            lit[prep.sample] = 1.0
+            mask = g.to_image(lit)[..., 0] > 0.999
+            m = image_metrics(g.to_image(rad), scene.images[i], mask)
+            ps.append(m["psnr"])
+            ss.append(m["ssim"])
+    return sum(ps) / len(ps), sum(ss) / len(ss)
+
+
+def _unobservable(out: Path, mdl) -> dict[str, Tensor]:
+    """Per parameter with an ``unobservable_<name>.png``, its ``[T, T]`` bool map (True = not constrained)."""
+    unobs = {}
+    for k in mdl.param_names:
+        f = out / f"unobservable_{k}.png"
+        if f.is_file():
+            u = read_png(f, transfer="linear")
+            unobs[k] = (u if u.dim() == 2 else u[..., 0]) > 0.5
+    return unobs
+
+
+def _fit_comparison(ref: _Reference, mdl, model: str, mat: str, target, captured: Mapping[str, Tensor]) -> dict:
+    """fit_brdf's parameters of ``model`` for material ``mat`` (fitted once) and the BRDF-space relative L1 of
+    the captured and the fitted parameters against it."""
+    from .. import brdf_fit
+
+    key = (model, mat)
+    if key not in ref.fits:
+        ref.fits[key] = brdf_fit.fit_brdf(mdl, target, ref.samples, restarts=ref.restarts)
+    fr = ref.fits[key]
+    meas = brdf_fit.evaluate_target(target, ref.samples)
+    with torch.no_grad():
+        cap = {k: v.to(torch.float64) for k, v in captured.items()}
+        pred = mdl.brdf(ref.samples.g, cap)
+    ec = brdf_fit.errors(pred, meas, ref.samples)
+    return {"fit": {k: v.tolist() for k, v in fr.params.items()},
+            "l1_capture": ec.rel_l1, "l1_capture_no_grazing": ec.rel_l1_no_grazing,
+            "l1_fit": fr.errors.rel_l1, "l1_fit_no_grazing": fr.errors.rel_l1_no_grazing}
+
+
+def _region_entries(scene: _Scene, mdl, model: str, maps: Mapping[str, Tensor], observed: Tensor,
+                    unobs: Mapping[str, Tensor], ref: _Reference | None) -> dict[str, dict]:
+    """Per material seen in the reconstruction: the captured medians, the observed texels, the observable
+    fraction per parameter and, with ``ref``, the comparison with fit_brdf."""
+    med = _region_medians(maps, scene.regions, observed)
+    entries = {}
+    for rid, mat in enumerate(scene.materials, start=1):
+        if rid not in med:
+            continue
+        sel = (scene.regions == rid) & observed
+        entry = {"params": {k: v.tolist() for k, v in med[rid].items()},
+                 "observed_texels": int(sel.sum()),
+                 "observable_fraction": {k: float((~u[sel]).float().mean()) for k, u in unobs.items()}}
+        if ref is not None:
+            entry.update(_fit_comparison(ref, mdl, model, mat, scene.targets[mat], med[rid]))
+        entries[mat] = entry
+    return entries
+
+
+def _benchmark_model(name: str, scene: _Scene, ref: _Reference | None, work: Path, progress: bool,
+                     reconstruct_options: Mapping) -> dict:
+    """Reconstruct the training dataset with model ``name`` and score it: one row of :func:`capture_benchmark`."""
+    from ..reconstruct import ReconstructionError, reconstruct
+
+    T = scene.regions.shape[0]
+    row = {"model": name, "chosen": None, "psnr": math.nan, "ssim": math.nan, "psnr_train": math.nan,
+           "seconds": math.nan, "error": None, "regions": {}}
+    t0 = time.perf_counter()
+    out = work / f"recon-{name}"
+    try:
+        rep = reconstruct(scene.dataset, model=name, out_dir=out, force=True, texture_size=T, sampling="nearest",
+                          progress=progress, **reconstruct_options)
+    except (ReconstructionError, ValueError, RuntimeError) as exc:
+        row["error"] = f"{type(exc).__name__}: {exc}"
+        return row
+    row["seconds"] = time.perf_counter() - t0
+    row["chosen"] = rep.model
+    row["psnr_train"] = sum(v["psnr"] for v in rep.views) / len(rep.views)
+    mdl = materials.get(rep.model)
+    maps = _read_maps(out, mdl)
+    # held-out views: re-render with the recovered maps, compare over the lit object pixels
+    row["psnr"], row["ssim"] = _heldout_scores(mdl, maps, scene)
+    observed = _observed(out, T)
+    unobs = _unobservable(out, mdl)
+    row["regions"] = _region_entries(scene, mdl, rep.model, maps, observed, unobs, ref)
+    return row
 
 
 def capture_benchmark(config: MeasuredSceneConfig | None = None, models: Sequence[str] = BENCH_MODELS, *,
@@ -83,8 +228,6 @@ def capture_benchmark(config: MeasuredSceneConfig | None = None, models: Sequenc
         and the median mixes those in).
     """
     from .. import brdf_fit
-    from ..metrics import image_metrics
-    from ..reconstruct import ReconstructionError, reconstruct
 
     config = config or measured_scene()
     tmp = None
@@ -94,81 +237,11 @@ def capture_benchmark(config: MeasuredSceneConfig | None = None, models: Sequenc
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
     try:
-        images, views, preps, mesh, regions = render_measured_scene(config)
-        held = _heldout(len(views))
-        if not held:
-            raise MeasuredSceneError("capture_benchmark: need at least 4 views (every 4th is held out)")
-        train = [i for i in range(len(views)) if i not in held]
-        ds_path = make_measured_scene(config, work / "dataset", overwrite=True, views=train)
-        targets = dict(zip(config.materials, config.models(), strict=True))
-        samples = brdf_fit.make_samples(resolution=fit_resolution, dtype=torch.float64) if fit_reference else None
-        fits: dict[tuple[str, str], brdf_fit.FitResult] = {}
-        T = regions.shape[0]
-        rows = []
-        for name in models:
-            row = {"model": name, "chosen": None, "psnr": math.nan, "ssim": math.nan, "psnr_train": math.nan,
-                   "seconds": math.nan, "error": None, "regions": {}}
-            rows.append(row)
-            t0 = time.perf_counter()
-            out = work / f"recon-{name}"
-            try:
-                rep = reconstruct(ds_path, model=name, out_dir=out, force=True, texture_size=T, sampling="nearest",
-                                  progress=progress, **reconstruct_options)
-            except (ReconstructionError, ValueError, RuntimeError) as exc:
-                row["error"] = f"{type(exc).__name__}: {exc}"
-                continue
-            row["seconds"] = time.perf_counter() - t0
-            row["chosen"] = rep.model
-            row["psnr_train"] = sum(v["psnr"] for v in rep.views) / len(rep.views)
-            mdl = materials.get(rep.model)
-            maps = {}
-            for spec in mdl.params:
-                m = read_exr(out / f"{spec.name}.exr")
-                m = m if m.dim() == 3 else m[..., None]
-                maps[spec.name] = m[..., :spec.channels] if m.shape[-1] >= spec.channels else m[..., :1]
-            # held-out views: re-render with the recovered maps, compare over the lit object pixels
-            ps, ss = [], []
-            with torch.no_grad():
-                for i in held:
-                    rad = shade(mdl, maps, preps[i], sampling="nearest")
-                    g = preps[i].gbuffer
-                    lit = torch.zeros(len(g), 3)
-                    lit[preps[i].sample] = 1.0
-                    mask = g.to_image(lit)[..., 0] > 0.999
-                    m = image_metrics(g.to_image(rad), images[i], mask)
-                    ps.append(m["psnr"])
-                    ss.append(m["ssim"])
-            row["psnr"], row["ssim"] = sum(ps) / len(ps), sum(ss) / len(ss)
-            observed = _observed(out, T)
-            unobs = {}
-            for k in mdl.param_names:
-                f = out / f"unobservable_{k}.png"
-                if f.is_file():
-                    u = read_png(f, transfer="linear")
-                    unobs[k] = (u if u.dim() == 2 else u[..., 0]) > 0.5
-            med = _region_medians(maps, regions, observed)
-            for rid, mat in enumerate(config.materials, start=1):
-                if rid not in med:
-                    continue
-                sel = (regions == rid) & observed
-                entry = {"params": {k: v.tolist() for k, v in med[rid].items()},
-                         "observed_texels": int(sel.sum()),
-                         "observable_fraction": {k: float((~u[sel]).float().mean()) for k, u in unobs.items()}}
-                if fit_reference:
-                    key = (rep.model, mat)
-                    if key not in fits:
-                        fits[key] = brdf_fit.fit_brdf(mdl, targets[mat], samples, restarts=fit_restarts)
-                    fr = fits[key]
-                    meas = brdf_fit.evaluate_target(targets[mat], samples)
-                    with torch.no_grad():
-                        cap = {k: v.to(torch.float64) for k, v in med[rid].items()}
-                        pred = mdl.brdf(samples.g, cap)
-                    entry["fit"] = {k: v.tolist() for k, v in fr.params.items()}
-                    ec = brdf_fit.errors(pred, meas, samples)
-                    entry["l1_capture"], entry["l1_capture_no_grazing"] = ec.rel_l1, ec.rel_l1_no_grazing
-                    entry["l1_fit"], entry["l1_fit_no_grazing"] = fr.errors.rel_l1, fr.errors.rel_l1_no_grazing
-                row["regions"][mat] = entry
-        return rows
+        scene = _prepare_scene(config, work)
+        ref = None
+        if fit_reference:
+            ref = _Reference(brdf_fit.make_samples(resolution=fit_resolution, dtype=torch.float64), fit_restarts)
+        return [_benchmark_model(name, scene, ref, work, progress, reconstruct_options) for name in models]
     finally:
         if tmp is not None:
             tmp.cleanup()
