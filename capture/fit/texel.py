@@ -444,114 +444,27 @@ def per_texel_lm(model: Model, obs: Observations, layout: Layout, theta: Tensor,
         ``(theta [T, P], history, info)`` — the cost after each iteration (first: the starting cost) and
         ``lm_s``, ``lm_iterations``, ``accepted`` (accepted fraction per iteration), ``stages``.
     """
-    T, P, H, W = obs.n_texels, layout.P, *obs.map_size
-    dt, dev = ACC, obs.device
-    lin_specs = [s for s in layout.specs if s.linear]
-    info: dict = {}
-    observed = torch.zeros(T, dtype=torch.bool, device=dev)
-    observed[obs.texel] = True
-    lin_cols = [c for s in layout.specs if s.linear for c in layout.cols(s.name)]
-    non_cols = [c for s in layout.specs if not s.linear for c in layout.cols(s.name)]
-    if schedule == "staged" and lin_cols and non_cols:
-        k = max(iterations // 3, 1)
-        stages = [("scale", lin_cols, k), ("shape", non_cols, k), ("all", list(range(P)), max(iterations - 2 * k, 1))]
-    else:
-        stages = [("all", list(range(P)), iterations)]
-    lam = torch.full((T,), 1e-3, dtype=dt, device=dev)
-    history: list[float] = []
+    P = layout.P
+    stages = _stages(layout, schedule, iterations)
     n_res_total = float(3 * obs.weight.to(ACC).sum())
     accepted = []
     it = 0
     t_lm = time.perf_counter()
-    with torch.no_grad():
-        pred = obs.predict(model, layout.unpack(torch.index_select(theta, 0, obs.texel).to(obs.dtype)))
-    cost_t = texel_cost(obs, pred, loss, delta)
-    history.append(float(cost_t.sum()) / n_res_total)
-    eye = torch.eye(P, dtype=dt, device=dev)
+    lm = _TexelLM(model, obs, layout, theta, loss=loss, delta=delta, smoothness=smoothness, reproject=reproject,
+                  sep=sep)
+    history: list[float] = [float(lm.cost_t.sum()) / n_res_total]
     for stage, cols, n_it in stages:
-        free = torch.zeros(P, dtype=torch.bool, device=dev)
+        free = torch.zeros(P, dtype=torch.bool, device=obs.device)
         free[cols] = True
         sgroups = [c for c in groups if all(free[x] for x in c)]
         stall = 0
-        active = observed.clone()
+        active = lm.observed.clone()
         for _ in range(n_it):
             it += 1
-            sub = obs if bool(active.all()) or float(active.float().mean()) > 0.8 else obs.select(active[obs.texel])
             with torch.no_grad():
-                pred_s, J = jacobian(model, layout, sub, torch.index_select(theta, 0, sub.texel), sgroups)
-                r = sub.radiance.to(ACC) - pred_s
-                wgt = sub.weight.to(ACC)[:, None] * irls_weights(r, loss, delta)
-                Jw = J * wgt[..., None]
-                JtJ = torch.zeros(T, P, P, dtype=dt, device=dev).index_add(
-                    0, sub.texel, torch.einsum("scp,scq->spq", Jw, J))
-                Jtr = torch.zeros(T, P, dtype=dt, device=dev).index_add(0, sub.texel, torch.einsum("scp,sc->sp", Jw, r))
-                d = torch.diagonal(JtJ, dim1=-2, dim2=-1).clone()
-                scale = d.mean(-1, keepdim=True).clamp_min(1e-30)
-                if smoothness > 0:
-                    mu = smoothness * float(d[observed].mean()) if bool(observed.any()) else 0.0
-                    nsum, cnt = _neighbour_sum(theta, H, W, observed)
-                    JtJ = JtJ + mu * cnt[:, :, None] * eye
-                    Jtr = Jtr + mu * (nsum - cnt * theta)
-                    d = torch.diagonal(JtJ, dim1=-2, dim2=-1).clone()
-                # in place on the [T, P, P] blocks: fresh [T, P, P] temporaries (diag_embed, where) cost
-                # ~40 ms each on the default scene, several per iteration
-                A = JtJ
-                A.diagonal(dim1=-2, dim2=-1).add_(lam[:, None] * (d + 1e-9 * scale))
-                rhs = Jtr
-                if not bool(free.all()):
-                    # frozen columns: identity rows, zero right-hand side → zero step
-                    A[:, ~free, :] = 0.0
-                    A[:, :, ~free] = 0.0
-                    A[:, ~free, ~free] = 1.0
-                    rhs = torch.where(free[None, :], rhs, torch.zeros_like(rhs))
-                live = active & (d.sum(-1) > 0)
-                A[~live] = eye
-                rhs = torch.where(live[:, None], rhs, torch.zeros_like(rhs))
-                step, ok = torch.linalg.solve_ex(A, rhs)
-                step = torch.where((ok == 0)[:, None] & torch.isfinite(step), step, torch.zeros_like(step))
-                # trust region in θ: each component of the step is clamped to ±MAX_STEP (logit/softplus
-                # units), so that a poor linearisation cannot throw a parameter into the flat tail of
-                # its sigmoid (dp/dθ ≈ 0) from where it would never return. Per component, not by
-                # scaling the whole step: a near-null column (absorption on its softplus floor) has an
-                # enormous damped step, and scaling by it froze every other parameter
-                step = step.clamp(-MAX_STEP, MAX_STEP)
-                trial = theta + step
-                pred_t = obs.predict(model, layout.unpack(torch.index_select(trial, 0, obs.texel).to(obs.dtype))) \
-                    if sub is obs else None
-                if pred_t is None:
-                    trial_s = torch.index_select(trial, 0, sub.texel).to(obs.dtype)
-                    pred_t_sub = sub.predict(model, layout.unpack(trial_s))
-                    new_cost = cost_t.clone()
-                    new_cost[active] = 0
-                    new_cost = new_cost + texel_cost(sub, pred_t_sub, loss, delta)
-                else:
-                    new_cost = texel_cost(obs, pred_t, loss, delta)
-                old_cost = cost_t
-                if smoothness > 0:
-                    nsum, cnt = _neighbour_sum(theta, H, W, observed)
-                    def prior(th, mu=mu, cnt=cnt, nsum=nsum):
-                        return mu * ((cnt * th.square() - 2 * th * nsum).sum(-1))
-
-                    new_cost_c, old_cost_c = new_cost + prior(trial), cost_t + prior(theta)
-                else:
-                    new_cost_c, old_cost_c = new_cost, old_cost
-                acc = live & (new_cost_c < old_cost_c)
-                theta = torch.where(acc[:, None], trial, theta)
-                cost_t = torch.where(acc, new_cost, cost_t)
-                lam = torch.where(acc, (lam / 3).clamp_min(1e-12), (lam * 4).clamp_max(1e12))
-                # texels converged: tiny relative improvement or step
-                rel = (old_cost_c - torch.where(acc, new_cost_c, old_cost_c)) / old_cost_c.clamp_min(1e-300)
-                small = (step.abs().amax(-1) < 1e-9) | (acc & (rel < 1e-12)) | (lam >= 1e12) | (cost_t <= 1e-30)
-                active = active & ~small
-                if reproject and lin_specs and stage == "all" and it % reproject == 0 and sub is obs:
-                    # variable-projection step: re-solve the linear parameters in closed form at the
-                    # current nonlinear ones; keep it per texel where it lowers the cost
-                    cand, ccost = linear_solve(model, layout, obs, theta, lin_specs, sep, loss, delta)
-                    better = observed & (ccost < cost_t)
-                    theta = torch.where(better[:, None], cand, theta)
-                    cost_t = torch.where(better, ccost, cost_t)
+                acc, live, active = lm.iterate(stage, free, sgroups, active, it)
             accepted.append(float(acc.sum()) / max(int(live.sum()), 1))
-            tot = float(cost_t.sum()) / n_res_total
+            tot = float(lm.cost_t.sum()) / n_res_total
             if progress is not None:
                 progress(stage, it, tot)
             prev = history[-1]
@@ -564,8 +477,149 @@ def per_texel_lm(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                 stall = 0
             if not bool(active.any()):
                 break
-    info["lm_s"] = time.perf_counter() - t_lm
-    info["lm_iterations"] = it
-    info["accepted"] = accepted
-    info["stages"] = [s[0] for s in stages]
-    return theta, history, info
+    info = {"lm_s": time.perf_counter() - t_lm, "lm_iterations": it, "accepted": accepted,
+            "stages": [s[0] for s in stages]}
+    return lm.theta, history, info
+
+
+def _stages(layout: Layout, schedule: str, iterations: int) -> list[tuple[str, list[int], int]]:
+    """The stages of :func:`per_texel_lm` as ``(name, columns, iterations)``: with ``schedule`` "staged" (and
+    linear and nonlinear parameters) the scale terms, the lobe shape, then all; else all at once."""
+    P = layout.P
+    lin_cols = [c for s in layout.specs if s.linear for c in layout.cols(s.name)]
+    non_cols = [c for s in layout.specs if not s.linear for c in layout.cols(s.name)]
+    if schedule == "staged" and lin_cols and non_cols:
+        k = max(iterations // 3, 1)
+        return [("scale", lin_cols, k), ("shape", non_cols, k), ("all", list(range(P)), max(iterations - 2 * k, 1))]
+    return [("all", list(range(P)), iterations)]
+
+
+class _Smoothness(NamedTuple):
+    """The neighbour prior of :func:`per_texel_lm` linearised at θ: weight ``mu``, the sum of the 4-neighbours' θ
+    ``nsum [T, P]`` and their count ``cnt [T, 1]``."""
+
+    mu: float
+    nsum: Tensor
+    cnt: Tensor
+
+    def cost(self, th: Tensor) -> Tensor:
+        """``[T]`` the prior's per-texel cost at ``th`` (up to a constant)."""
+        return self.mu * ((self.cnt * th.square() - 2 * th * self.nsum).sum(-1))
+
+
+class _TexelLM:
+    """The state of :func:`per_texel_lm`: θ ``[T, P]``, the per-texel data cost ``cost_t [T]`` and damping ``lam
+    [T]``, with one iteration's linearisation, damped solve and per-texel step acceptance (:meth:`iterate`)."""
+
+    def __init__(self, model: Model, obs: Observations, layout: Layout, theta: Tensor, *, loss: str, delta: float,
+                 smoothness: float, reproject: int, sep: dict[str, bool]):
+        self.model, self.obs, self.layout, self.loss, self.delta = model, obs, layout, loss, delta
+        self.smoothness, self.reproject, self.sep = smoothness, reproject, sep
+        T, P = obs.n_texels, layout.P
+        self.H, self.W = obs.map_size
+        self.lin_specs = [s for s in layout.specs if s.linear]
+        self.observed = torch.zeros(T, dtype=torch.bool, device=obs.device)
+        self.observed[obs.texel] = True
+        self.lam = torch.full((T,), 1e-3, dtype=ACC, device=obs.device)
+        self.eye = torch.eye(P, dtype=ACC, device=obs.device)
+        self.theta = theta
+        with torch.no_grad():
+            pred = obs.predict(model, layout.unpack(torch.index_select(theta, 0, obs.texel).to(obs.dtype)))
+        self.cost_t = texel_cost(obs, pred, loss, delta)
+
+    def iterate(self, stage: str, free: Tensor, sgroups, active: Tensor, it: int) -> tuple[Tensor, Tensor, Tensor]:
+        """One LM iteration on the ``free`` columns of the ``active`` texels → ``(accepted, live, active)`` ``[T]``
+        bool: the texels whose step was kept, those that took one, and those still active."""
+        obs = self.obs
+        sub = obs if bool(active.all()) or float(active.float().mean()) > 0.8 else obs.select(active[obs.texel])
+        JtJ, Jtr = self._normal(sub, sgroups)
+        d = torch.diagonal(JtJ, dim1=-2, dim2=-1).clone()
+        scale = d.mean(-1, keepdim=True).clamp_min(1e-30)
+        prior = None
+        if self.smoothness > 0:
+            observed = self.observed
+            mu = self.smoothness * float(d[observed].mean()) if bool(observed.any()) else 0.0
+            prior = _Smoothness(mu, *_neighbour_sum(self.theta, self.H, self.W, observed))
+            JtJ = JtJ + mu * prior.cnt[:, :, None] * self.eye
+            Jtr = Jtr + mu * (prior.nsum - prior.cnt * self.theta)
+            d = torch.diagonal(JtJ, dim1=-2, dim2=-1).clone()
+        step, live = self._damped_step(JtJ, Jtr, d, scale, free, active)
+        trial = self.theta + step
+        new_cost = self._trial_cost(trial, sub, active)
+        if prior is not None:
+            new_cost_c, old_cost_c = new_cost + prior.cost(trial), self.cost_t + prior.cost(self.theta)
+        else:
+            new_cost_c, old_cost_c = new_cost, self.cost_t
+        acc = live & (new_cost_c < old_cost_c)
+        self.theta = torch.where(acc[:, None], trial, self.theta)
+        self.cost_t = torch.where(acc, new_cost, self.cost_t)
+        self.lam = torch.where(acc, (self.lam / 3).clamp_min(1e-12), (self.lam * 4).clamp_max(1e12))
+        # texels converged: tiny relative improvement or step
+        rel = (old_cost_c - torch.where(acc, new_cost_c, old_cost_c)) / old_cost_c.clamp_min(1e-300)
+        small = (step.abs().amax(-1) < 1e-9) | (acc & (rel < 1e-12)) | (self.lam >= 1e12) | (self.cost_t <= 1e-30)
+        active = active & ~small
+        if self.reproject and self.lin_specs and stage == "all" and it % self.reproject == 0 and sub is obs:
+            self._reproject()
+        return acc, live, active
+
+    def _normal(self, sub: Observations, sgroups) -> tuple[Tensor, Tensor]:
+        """Per-texel normal equations ``JᵀWJ [T, P, P]`` and ``JᵀWr [T, P]`` of the samples ``sub`` (IRLS weights)."""
+        T, P = self.obs.n_texels, self.layout.P
+        pred_s, J = jacobian(self.model, self.layout, sub, torch.index_select(self.theta, 0, sub.texel), sgroups)
+        r = sub.radiance.to(ACC) - pred_s
+        wgt = sub.weight.to(ACC)[:, None] * irls_weights(r, self.loss, self.delta)
+        Jw = J * wgt[..., None]
+        JtJ = torch.zeros(T, P, P, dtype=ACC, device=self.obs.device).index_add(
+            0, sub.texel, torch.einsum("scp,scq->spq", Jw, J))
+        Jtr = torch.zeros(T, P, dtype=ACC, device=self.obs.device).index_add(
+            0, sub.texel, torch.einsum("scp,sc->sp", Jw, r))
+        return JtJ, Jtr
+
+    def _damped_step(self, JtJ: Tensor, Jtr: Tensor, d: Tensor, scale: Tensor, free: Tensor,
+                     active: Tensor) -> tuple[Tensor, Tensor]:
+        """The damped per-texel step (zero on frozen columns and on texels that are not live), clamped to the trust
+        region, and the live texels ``[T]``. Overwrites ``JtJ``."""
+        # in place on the [T, P, P] blocks: fresh [T, P, P] temporaries (diag_embed, where) cost
+        # ~40 ms each on the default scene, several per iteration
+        A = JtJ
+        A.diagonal(dim1=-2, dim2=-1).add_(self.lam[:, None] * (d + 1e-9 * scale))
+        rhs = Jtr
+        if not bool(free.all()):
+            # frozen columns: identity rows, zero right-hand side → zero step
+            A[:, ~free, :] = 0.0
+            A[:, :, ~free] = 0.0
+            A[:, ~free, ~free] = 1.0
+            rhs = torch.where(free[None, :], rhs, torch.zeros_like(rhs))
+        live = active & (d.sum(-1) > 0)
+        A[~live] = self.eye
+        rhs = torch.where(live[:, None], rhs, torch.zeros_like(rhs))
+        step, ok = torch.linalg.solve_ex(A, rhs)
+        step = torch.where((ok == 0)[:, None] & torch.isfinite(step), step, torch.zeros_like(step))
+        # trust region in θ: each component of the step is clamped to ±MAX_STEP (logit/softplus
+        # units), so that a poor linearisation cannot throw a parameter into the flat tail of
+        # its sigmoid (dp/dθ ≈ 0) from where it would never return. Per component, not by
+        # scaling the whole step: a near-null column (absorption on its softplus floor) has an
+        # enormous damped step, and scaling by it froze every other parameter
+        return step.clamp(-MAX_STEP, MAX_STEP), live
+
+    def _trial_cost(self, trial: Tensor, sub: Observations, active: Tensor) -> Tensor:
+        """``[T]`` the data cost at θ ``trial``: re-evaluated on the samples ``sub`` of the active texels, the
+        others keep their cost."""
+        obs, model, layout = self.obs, self.model, self.layout
+        if sub is obs:
+            pred_t = obs.predict(model, layout.unpack(torch.index_select(trial, 0, obs.texel).to(obs.dtype)))
+            return texel_cost(obs, pred_t, self.loss, self.delta)
+        trial_s = torch.index_select(trial, 0, sub.texel).to(obs.dtype)
+        pred_t_sub = sub.predict(model, layout.unpack(trial_s))
+        new_cost = self.cost_t.clone()
+        new_cost[active] = 0
+        return new_cost + texel_cost(sub, pred_t_sub, self.loss, self.delta)
+
+    def _reproject(self) -> None:
+        """Variable projection: re-solve the linear parameters in closed form at the current nonlinear ones; keep
+        it per texel where it lowers the cost."""
+        cand, ccost = linear_solve(self.model, self.layout, self.obs, self.theta, self.lin_specs, self.sep, self.loss,
+                                   self.delta)
+        better = self.observed & (ccost < self.cost_t)
+        self.theta = torch.where(better[:, None], cand, self.theta)
+        self.cost_t = torch.where(better, ccost, self.cost_t)
