@@ -42,7 +42,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -423,18 +424,9 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         no anchors.
     """
     t0 = time.perf_counter()
-    if candidates < 1 or rounds < 1 or refit_iterations < 0 or not (evidence >= 0 and math.isfinite(evidence)):
-        raise ValueError(f"share_materials: need candidates ≥ 1, rounds ≥ 1, refit_iterations ≥ 0 and a finite "
-                         f"evidence ≥ 0, got {candidates}, {rounds}, {refit_iterations}, {evidence}")
-    if isinstance(pool_block, bool) or not isinstance(pool_block, int) or pool_block < 0 or pool_candidates < 0 \
-            or not (pool_evidence >= 0 and math.isfinite(pool_evidence)):
-        raise ValueError(f"share_materials: pool_block must be an integer ≥ 0 (0 = no pooled proposals), "
-                         f"pool_candidates ≥ 0 and pool_evidence a finite χ² ≥ 0, got {pool_block!r}, "
-                         f"{pool_candidates!r}, {pool_evidence!r}")
-    if not (min_evidence >= 0 and math.isfinite(min_evidence)):
-        raise ValueError(f"share_materials: min_evidence must be a finite χ² ≥ 0 (0 keeps every candidate), "
-                         f"got {min_evidence!r}")
-    T, P = theta.shape
+    _check_options(candidates, rounds, refit_iterations, evidence, pool_block, pool_candidates, pool_evidence,
+                   min_evidence)
+    T, _ = theta.shape
     H, W = obs.map_size
     dev = theta.device
     per_texel, sep = _per_texel_specs(model, layout, obs.dtype)
@@ -447,103 +439,165 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
         return theta, info
     scols = [c for s in shared for c in layout.cols(s.name)]
     thr = torch.tensor([std_threshold(s) for s in shared for _ in range(s.channels)], dtype=ACC, device=dev)
-    theta_in = theta
-    canon = layout.canonical(theta)
-    feats = canon[anchors][:, scols] / thr
+    feats = layout.canonical(theta)[anchors][:, scols] / thr
     gen = torch.Generator().manual_seed(seed)
     centres = kmeans_pp(feats, candidates, gen) * thr                                  # canonical [K, Ps]
-    K = centres.shape[0]
-
-    def as_materials(c):                     # canonical [k, Ps] → θ rows [k, P] (only the shared columns count)
-        m = theta[:c.shape[0]].clone()
-        off = 0
-        for s in shared:
-            m[:, layout.cols(s.name)] = _from_canon(s, c[:, off:off + s.channels])
-            off += s.channels
-        return m
-
-    def under_each(m):                       # per candidate row of m: every texel's closed-form albedo and χ²
-        out = []
-        for k in range(m.shape[0]):
-            th = theta.clone()
-            th[:, scols] = m[k, scols]
-            out.append(linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0))
-        return torch.stack([o[0] for o in out]), torch.stack([o[1] for o in out])   # [k, T, P], [k, T]
-
-    mat = as_materials(centres)
-    chi = _chi2_observations(obs, noise)
+    ctx = _Context(model, layout, _chi2_observations(obs, noise), shared, per_texel, sep, scols)
+    st = _Round(theta=theta, mat=_as_materials(ctx, theta, centres),
+                kmeans_label=torch.cdist(feats, centres / thr).argmin(1),
+                label=torch.zeros(T, dtype=torch.long, device=dev), scale=torch.zeros(T, dtype=torch.long, device=dev))
     groups = [c for c in param_groups(layout) if all(x in scols for x in c)]
-    y, w = chi.radiance.to(ACC), chi.weight.to(ACC)
-    label = torch.zeros(T, dtype=torch.long, device=dev)
+    y, w = ctx.chi.radiance.to(ACC), ctx.chi.weight.to(ACC)
     residuals = 3.0 * torch.bincount(obs.texel, minlength=T).to(ACC)
     pool_s2 = photo_noise_ratio(obs, noise) if misfit else None
     own = residuals > 0
-    kmeans_label = torch.cdist(feats, centres / thr).argmin(1)
-    scale = torch.zeros(T, dtype=torch.long, device=dev)
-    decided = {}
-    pruned = 0
     with torch.no_grad():
         for rnd in range(rounds):
-            cands, costs = under_each(mat)                                            # [K, T, P], [K, T]
+            cands, costs = _under_each(ctx, st.theta, st.mat)                         # [K, T, P], [K, T]
             if rnd == 0 and pool_block > 0 and pool_candidates > 0:
-                extra = _propose_pooled(model, layout, chi, costs, own & ~anchors, anchors, residuals, thr, pool_block,
-                                        pool_evidence, pool_candidates, gen, info)
+                extra = _propose_pooled(model, layout, ctx.chi, costs, own & ~anchors, anchors, residuals, thr,
+                                        pool_block, pool_evidence, pool_candidates, gen, info)
                 if extra is not None:
-                    new_mat = as_materials(extra)
-                    new_cands, new_costs = under_each(new_mat)
-                    cands, costs = torch.cat([cands, new_cands]), torch.cat([costs, new_costs])
-                    mat = torch.cat([mat, new_mat])
-                    K = mat.shape[0]
+                    cands, costs = _add_candidates(ctx, st, cands, costs, extra)
             if min_evidence > 0:
                 alive = _supported(costs, observed & own, cap, residuals if misfit else None, min_evidence, pool_s2)
                 if not bool(alive.all()):
-                    # a material the photos do not need exists only to absorb weakly observed texels: a duplicate,
-                    # a spare k-means cluster of border mixtures. Drop it; the anchors it held (k-means labels) and
-                    # the last round's labels move to their best remaining candidate
-                    keep = alive.nonzero()[:, 0]
-                    pruned += int(K - keep.numel())
-                    remap = torch.full((K,), -1, dtype=torch.long, device=dev)
-                    remap[keep] = torch.arange(keep.numel(), device=dev)
-                    K, costs, cands, mat = keep.numel(), costs[keep], cands[keep], mat[keep]
-                    nearest = costs.argmin(0)
-                    kmeans_label = torch.where(remap[kmeans_label] >= 0, remap[kmeans_label], nearest[anchors])
-                    label = torch.where(remap[label] >= 0, remap[label], nearest)
+                    cands, costs = _drop_candidates(st, cands, costs, alive, anchors)
             prior = None
             if albedo_prior > 0:
-                # the albedo statistics come from the anchors (labelled by k-means) and, after the first
-                # round, the texels their own samples decided; not from texels labelled by their neighbours,
-                # whose errors would widen a material's albedo range round after round
-                if rnd == 0:
-                    stat_set, a_lab = anchors, kmeans_label
-                else:
-                    stat_set = anchors | (own & (scale == 1))
-                    a_lab = label[stat_set]
-                    a_lab[anchors[stat_set]] = kmeans_label
+                stat_set, a_lab = _albedo_statistics_set(st, rnd, anchors, own)
                 prior = (albedo_prior * _albedo_prior(layout.unpack(cands)[per_texel[0].name], stat_set, a_lab, own)
                          ).clamp_max(prior_cap)
-            label, scale = _assign(costs, observed, H, W, evidence, cap, residuals if misfit else None, prior,
-                                   pool_s2)
-            theta = cands[label, torch.arange(T, device=dev)]
-            decided = {int(x): int((scale == x).sum()) for x in scale[observed].unique()}
-            mat = _refit(model, layout, chi, theta, mat, label, scols, groups, y, w, refit_iterations)
-        th = theta.clone()
-        th[:, scols] = mat[label][:, scols]
-        th, material_cost = linear_solve(model, layout, chi, th, per_texel, sep, "l2", 1.0)
+            st.label, st.scale = _assign(costs, observed, H, W, evidence, cap, residuals if misfit else None, prior,
+                                         pool_s2)
+            st.theta = cands[st.label, torch.arange(T, device=dev)]
+            st.decided = {int(x): int((st.scale == x).sum()) for x in st.scale[observed].unique()}
+            st.mat = _refit(model, layout, ctx.chi, st.theta, st.mat, st.label, scols, groups, y, w, refit_iterations)
+        th = st.theta.clone()
+        th[:, scols] = st.mat[st.label][:, scols]
+        th, material_cost = linear_solve(model, layout, ctx.chi, th, per_texel, sep, "l2", 1.0)
         # anchors keep their own fit: their samples determined it, and a material's smooth variation
         # (a roughness gradient) lives there
-        theta = torch.where(anchors[:, None], theta_in, th)
+        out = torch.where(anchors[:, None], theta, th)
         # texels read only through a neighbour's bilinear footprint have no closed-form albedo of their own:
         # pull-push from the texels of the same material that have one (of any material where none has;
         # measured on the default scene: albedo RMSE 0.0173 → 0.0151 against any-material pull-push)
-        theta = borrow_albedo(layout, theta, torch.where(observed, label, torch.full_like(label, -1)), own, H, W)
-    lab = torch.where(observed, label, torch.full_like(label, -1))
-    mats = layout.unpack(mat)
+        out = borrow_albedo(layout, out, torch.where(observed, st.label, torch.full_like(st.label, -1)), own, H, W)
+    K = st.mat.shape[0]
+    lab = torch.where(observed, st.label, torch.full_like(st.label, -1))
+    mats = layout.unpack(st.mat)
     info.update(materials=[{s.name: mats[s.name][k].tolist() for s in shared} for k in range(K)], labels=lab,
-                material_cost=material_cost, decided_at=decided, photo_noise_ratio=pool_s2,
-                texels_per_material=torch.bincount(label[observed], minlength=K).tolist(), pruned=pruned,
+                material_cost=material_cost, decided_at=st.decided, photo_noise_ratio=pool_s2,
+                texels_per_material=torch.bincount(st.label[observed], minlength=K).tolist(), pruned=st.pruned,
                 share_s=time.perf_counter() - t0)
-    return theta, info
+    return out, info
 
+
+def _check_options(candidates: int, rounds: int, refit_iterations: int, evidence: float, pool_block: int,
+                   pool_candidates: int, pool_evidence: float, min_evidence: float) -> None:
+    """A ValueError naming the options of :func:`share_materials` out of their range."""
+    if candidates < 1 or rounds < 1 or refit_iterations < 0 or not (evidence >= 0 and math.isfinite(evidence)):
+        raise ValueError(f"share_materials: need candidates ≥ 1, rounds ≥ 1, refit_iterations ≥ 0 and a finite "
+                         f"evidence ≥ 0, got {candidates}, {rounds}, {refit_iterations}, {evidence}")
+    if isinstance(pool_block, bool) or not isinstance(pool_block, int) or pool_block < 0 or pool_candidates < 0 \
+            or not (pool_evidence >= 0 and math.isfinite(pool_evidence)):
+        raise ValueError(f"share_materials: pool_block must be an integer ≥ 0 (0 = no pooled proposals), "
+                         f"pool_candidates ≥ 0 and pool_evidence a finite χ² ≥ 0, got {pool_block!r}, "
+                         f"{pool_candidates!r}, {pool_evidence!r}")
+    if not (min_evidence >= 0 and math.isfinite(min_evidence)):
+        raise ValueError(f"share_materials: min_evidence must be a finite χ² ≥ 0 (0 keeps every candidate), "
+                         f"got {min_evidence!r}")
+
+
+class _Context(NamedTuple):
+    """What the steps of :func:`share_materials` read: the model and its layout, the observations with χ² weights,
+    the shared and the per-texel parameters (with the latter's separability) and the shared parameters' columns."""
+
+    model: Model
+    layout: Layout
+    chi: Observations
+    shared: list
+    per_texel: list
+    sep: dict[str, bool]
+    scols: list[int]
+
+
+@dataclass
+class _Round:
+    """What :func:`share_materials` carries from round to round: every texel's θ under its candidate (``theta``,
+    the per-texel fit before the first round), the candidates ``mat [K, P]`` (θ rows; only the shared columns
+    count), the anchors' k-means labels, each texel's candidate ``label`` and the box size that decided it
+    (``scale``), the texel counts per box size and the candidates dropped so far."""
+
+    theta: Tensor
+    mat: Tensor
+    kmeans_label: Tensor
+    label: Tensor
+    scale: Tensor
+    decided: dict = field(default_factory=dict)
+    pruned: int = 0
+
+
+def _as_materials(ctx: _Context, theta: Tensor, c: Tensor) -> Tensor:
+    """Canonical shared values ``c [k, Ps]`` → θ rows ``[k, P]`` (only the shared columns count)."""
+    m = theta[:c.shape[0]].clone()
+    off = 0
+    for s in ctx.shared:
+        m[:, ctx.layout.cols(s.name)] = _from_canon(s, c[:, off:off + s.channels])
+        off += s.channels
+    return m
+
+
+def _under_each(ctx: _Context, theta: Tensor, m: Tensor) -> tuple[Tensor, Tensor]:
+    """Per candidate row of ``m``: every texel's θ with its closed-form albedo and its χ² → ``[k, T, P]``,
+    ``[k, T]``."""
+    out = []
+    for k in range(m.shape[0]):
+        th = theta.clone()
+        th[:, ctx.scols] = m[k, ctx.scols]
+        out.append(linear_solve(ctx.model, ctx.layout, ctx.chi, th, ctx.per_texel, ctx.sep, "l2", 1.0))
+    return torch.stack([o[0] for o in out]), torch.stack([o[1] for o in out])
+
+
+def _add_candidates(ctx: _Context, st: _Round, cands: Tensor, costs: Tensor, extra: Tensor) -> tuple[Tensor, Tensor]:
+    """Append the candidates of canonical shared values ``extra`` to ``st.mat`` and their texels' fits and costs to
+    ``cands``, ``costs``."""
+    new_mat = _as_materials(ctx, st.theta, extra)
+    new_cands, new_costs = _under_each(ctx, st.theta, new_mat)
+    cands, costs = torch.cat([cands, new_cands]), torch.cat([costs, new_costs])
+    st.mat = torch.cat([st.mat, new_mat])
+    return cands, costs
+
+
+def _drop_candidates(st: _Round, cands: Tensor, costs: Tensor, alive: Tensor,
+                     anchors: Tensor) -> tuple[Tensor, Tensor]:
+    """Keep the ``alive`` candidates only (in ``st`` and in ``cands``, ``costs``)."""
+    # a material the photos do not need exists only to absorb weakly observed texels: a duplicate,
+    # a spare k-means cluster of border mixtures. Drop it; the anchors it held (k-means labels) and
+    # the last round's labels move to their best remaining candidate
+    K, dev = st.mat.shape[0], st.mat.device
+    keep = alive.nonzero()[:, 0]
+    st.pruned += int(K - keep.numel())
+    remap = torch.full((K,), -1, dtype=torch.long, device=dev)
+    remap[keep] = torch.arange(keep.numel(), device=dev)
+    costs, cands, st.mat = costs[keep], cands[keep], st.mat[keep]
+    nearest = costs.argmin(0)
+    st.kmeans_label = torch.where(remap[st.kmeans_label] >= 0, remap[st.kmeans_label], nearest[anchors])
+    st.label = torch.where(remap[st.label] >= 0, remap[st.label], nearest)
+    return cands, costs
+
+
+def _albedo_statistics_set(st: _Round, rnd: int, anchors: Tensor, own: Tensor) -> tuple[Tensor, Tensor]:
+    """The texels whose albedo makes the materials' albedo statistics (:func:`_albedo_prior`) and their labels."""
+    # the albedo statistics come from the anchors (labelled by k-means) and, after the first
+    # round, the texels their own samples decided; not from texels labelled by their neighbours,
+    # whose errors would widen a material's albedo range round after round
+    if rnd == 0:
+        return anchors, st.kmeans_label
+    stat_set = anchors | (own & (st.scale == 1))
+    a_lab = st.label[stat_set]
+    a_lab[anchors[stat_set]] = st.kmeans_label
+    return stat_set, a_lab
 
 def unmatched_texels(model: Model, obs: Observations, layout, theta: Tensor, info: dict, *, evidence: float = 10.0,
                      noise: tuple[float, float] = (0.01, 0.1)) -> Tensor:
