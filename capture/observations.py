@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -278,8 +279,6 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
     Raises:
         ObservationError: mismatched lists, photo size ≠ camera size, bad exposure, no sample left.
     """
-    from renderer.texture import bilinear_weights, texel_of
-
     if len(prepared) != len(photos):
         raise ObservationError(f"got {len(prepared)} prepared views but {len(photos)} photos; pass one photo per view")
     if len(prepared) == 0:
@@ -300,71 +299,107 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
     if texels is not None and len(texels) != len(prepared):
         raise ObservationError(f"texels: need one (index, weight) pair per view, got {len(texels)} for "
                                f"{len(prepared)} views")
+    settings = _ViewSettings(exposures, saturation, clipped, footprints, texels, dtype, light_id)
     drops = dict.fromkeys(DROP_REASONS, 0)
-    parts = []
-    for vi, (prep, photo) in enumerate(zip(prepared, photos, strict=True)):
-        g = prep.gbuffer
-        if g is None:
-            raise ObservationError(f"view {vi}: Prepared has no G-buffer; call renderer.shading.prepare(gbuffer, ...)")
-        if g.supersample != 1 and not footprints:
-            raise ObservationError(f"view {vi}: observations need a G-buffer with supersample=1 (one sample per "
-                                   f"pixel), got supersample={g.supersample}")
-        photo = _check_image(photo, g.height, g.width, f"view {vi}")
-        dt = dtype or (photo.dtype if photo.is_floating_point() else torch.float32)
-        photo = photo.to(dtype=dt, device=g.position.device)
-        flat = photo.reshape(-1, 3)
-        n_pix = g.height * g.width
-        drops["background"] += 0 if footprints else n_pix - len(g)
-        pix = flat[g.pixel]                                    # [N, 3] for every hit sample
-        finite = torch.isfinite(pix).all(-1)
-        clipped_s = finite & ((pix >= saturation).any(-1) if saturation is not None else torch.zeros_like(finite))
-        if clipped is not None:
-            clipped_s = clipped_s | (finite & clipped[vi].to(finite.device).reshape(-1)[g.pixel])
-        facing = (g.normal * g.view).sum(-1) > 0
-        lit = torch.zeros(len(g), dtype=torch.bool, device=finite.device)
-        lit[prep.sample] = True
-        # samples one of the view's lights faces geometrically (for shadowed vs unlit), as prepare found them
-        could = prep.faced if prep.faced is not None else lit
-        ok = finite & ~clipped_s & facing & lit
-        drops["nonfinite"] += int((~finite).sum())
-        drops["clipped"] += int(clipped_s.sum())
-        rest = finite & ~clipped_s
-        drops["backfacing"] += int((rest & ~facing).sum())
-        rest = rest & facing
-        drops["shadowed"] += int((rest & ~lit & could).sum())
-        drops["unlit"] += int((rest & ~lit & ~could).sum())
-        keep_g = torch.nonzero(ok).squeeze(-1)                 # G-buffer indices kept
-        local = torch.full((len(g),), -1, dtype=torch.long, device=finite.device)
-        local[keep_g] = torch.arange(len(keep_g), device=finite.device)
-        pairs = []
-        for t in prep.lights:
-            sel = ok[t.index]
-            if not bool(sel.any()):
-                continue
-            lid = light_id.get(id(t.light), -1)
-            pairs.append((local[t.index[sel]], torch.full((int(sel.sum()),), lid, dtype=torch.long,
-                                                           device=finite.device),
-                          t.angles[sel].to(dtype=dt), t.irradiance[sel].to(dt)))
-        envs = []
-        for e in prep.envs:
-            sel = ok[e.index]
-            envs.append((e.light, local[e.index[sel]]))
-        uv = g.uv[keep_g].to(dt)
-        valid = torch.zeros(n_pix, dtype=torch.bool, device=finite.device)
-        valid[g.pixel] = finite & ~clipped_s
-        resid = noise_residual(torch.nan_to_num(photo / exposures[vi]), valid.reshape(g.height, g.width))
-        tex = None
-        if texels is not None:
-            ti, tw = texels[vi]
-            if ti.shape != tw.shape or ti.dim() != 2 or ti.shape[0] != len(g):
-                raise ObservationError(f"view {vi}: texels must be (index, weight) of shape [{len(g)}, K] (one row per "
-                                       f"G-buffer sample), got {tuple(ti.shape)} and {tuple(tw.shape)}")
-            tex = (ti[keep_g], tw[keep_g].to(dt))
-        parts.append(dict(tex=tex, uv=uv, n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
-                          radiance=pix[keep_g] / exposures[vi], noise=resid.reshape(-1, 3)[g.pixel[keep_g]],
-                          pixel=g.pixel[keep_g], pairs=pairs, envs=envs, view=vi, size=(g.height, g.width),
-                          weight=g.weight[keep_g].to(dt) if footprints else torch.ones(len(keep_g), dtype=dt)))
-    # concatenate views, offsetting sample indices
+    parts = [_observe_view(vi, prep, photo, settings, drops)
+             for vi, (prep, photo) in enumerate(zip(prepared, photos, strict=True))]
+    return _concatenate(parts, drops, (H, W), bilinear=bilinear, texels=texels is not None,
+                        n_lights=max(len(lights), 1))
+
+
+class _ViewSettings(NamedTuple):
+    """The options of :func:`observe_views` that each view's extraction reads (per view: index by the view)."""
+
+    exposures: list[float]
+    saturation: float | None
+    clipped: Sequence[Tensor] | None
+    footprints: bool
+    texels: Sequence[tuple[Tensor, Tensor]] | None
+    dtype: torch.dtype | None
+    light_id: dict[int, int]
+
+
+def _observe_view(vi: int, prep, photo: Tensor, settings: _ViewSettings, drops: dict) -> dict:
+    """The kept samples of view ``vi`` (its prepared G-buffer and photo) as a dict of per-sample tensors, its
+    (sample, light) pairs and environment terms with view-local sample indices; its drops are added to ``drops``."""
+    g = prep.gbuffer
+    if g is None:
+        raise ObservationError(f"view {vi}: Prepared has no G-buffer; call renderer.shading.prepare(gbuffer, ...)")
+    if g.supersample != 1 and not settings.footprints:
+        raise ObservationError(f"view {vi}: observations need a G-buffer with supersample=1 (one sample per "
+                               f"pixel), got supersample={g.supersample}")
+    photo = _check_image(photo, g.height, g.width, f"view {vi}")
+    dt = settings.dtype or (photo.dtype if photo.is_floating_point() else torch.float32)
+    photo = photo.to(dtype=dt, device=g.position.device)
+    flat = photo.reshape(-1, 3)
+    n_pix = g.height * g.width
+    drops["background"] += 0 if settings.footprints else n_pix - len(g)
+    pix = flat[g.pixel]                                    # [N, 3] for every hit sample
+    finite = torch.isfinite(pix).all(-1)
+    saturation = settings.saturation
+    clipped_s = finite & ((pix >= saturation).any(-1) if saturation is not None else torch.zeros_like(finite))
+    if settings.clipped is not None:
+        clipped_s = clipped_s | (finite & settings.clipped[vi].to(finite.device).reshape(-1)[g.pixel])
+    facing = (g.normal * g.view).sum(-1) > 0
+    lit = torch.zeros(len(g), dtype=torch.bool, device=finite.device)
+    lit[prep.sample] = True
+    # samples one of the view's lights faces geometrically (for shadowed vs unlit), as prepare found them
+    could = prep.faced if prep.faced is not None else lit
+    ok = finite & ~clipped_s & facing & lit
+    drops["nonfinite"] += int((~finite).sum())
+    drops["clipped"] += int(clipped_s.sum())
+    rest = finite & ~clipped_s
+    drops["backfacing"] += int((rest & ~facing).sum())
+    rest = rest & facing
+    drops["shadowed"] += int((rest & ~lit & could).sum())
+    drops["unlit"] += int((rest & ~lit & ~could).sum())
+    keep_g = torch.nonzero(ok).squeeze(-1)                 # G-buffer indices kept
+    local = torch.full((len(g),), -1, dtype=torch.long, device=finite.device)
+    local[keep_g] = torch.arange(len(keep_g), device=finite.device)
+    pairs, envs = _view_pairs(prep, ok, local, settings.light_id, dt)
+    uv = g.uv[keep_g].to(dt)
+    valid = torch.zeros(n_pix, dtype=torch.bool, device=finite.device)
+    valid[g.pixel] = finite & ~clipped_s
+    exposure = settings.exposures[vi]
+    resid = noise_residual(torch.nan_to_num(photo / exposure), valid.reshape(g.height, g.width))
+    tex = None
+    if settings.texels is not None:
+        ti, tw = settings.texels[vi]
+        if ti.shape != tw.shape or ti.dim() != 2 or ti.shape[0] != len(g):
+            raise ObservationError(f"view {vi}: texels must be (index, weight) of shape [{len(g)}, K] (one row per "
+                                   f"G-buffer sample), got {tuple(ti.shape)} and {tuple(tw.shape)}")
+        tex = (ti[keep_g], tw[keep_g].to(dt))
+    return dict(tex=tex, uv=uv, n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
+                radiance=pix[keep_g] / exposure, noise=resid.reshape(-1, 3)[g.pixel[keep_g]],
+                pixel=g.pixel[keep_g], pairs=pairs, envs=envs, view=vi, size=(g.height, g.width),
+                weight=g.weight[keep_g].to(dt) if settings.footprints else torch.ones(len(keep_g), dtype=dt))
+
+
+def _view_pairs(prep, ok: Tensor, local: Tensor, light_id: dict[int, int], dt) -> tuple[list, list]:
+    """The kept (sample, light) pairs of a view per light — ``(sample, light index, angles, E·V)`` — and its
+    environment terms ``(light, sample index)``, samples by their index ``local`` among the view's kept ones."""
+    pairs = []
+    for t in prep.lights:
+        sel = ok[t.index]
+        if not bool(sel.any()):
+            continue
+        lid = light_id.get(id(t.light), -1)
+        pairs.append((local[t.index[sel]], torch.full((int(sel.sum()),), lid, dtype=torch.long,
+                                                       device=ok.device),
+                      t.angles[sel].to(dtype=dt), t.irradiance[sel].to(dt)))
+    envs = []
+    for e in prep.envs:
+        sel = ok[e.index]
+        envs.append((e.light, local[e.index[sel]]))
+    return pairs, envs
+
+
+def _concatenate(parts: list[dict], drops: dict, map_size: tuple[int, int], *, bilinear: bool, texels: bool,
+                 n_lights: int) -> Observations:
+    """The views' samples (:func:`_observe_view`) as one :class:`Observations`, sample indices offset per view."""
+    from renderer.texture import bilinear_weights, texel_of
+
+    H, W = map_size
     offs, S = [], 0
     for p in parts:
         offs.append(S)
@@ -389,7 +424,7 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
     angles = Angles(*(torch.cat([getattr(a, f) for a in ang]) for f in ("nl", "nv", "nh", "lh", "lv")))
     view = torch.cat([torch.full((len(p["uv"]),), p["view"], dtype=torch.long) for p in parts]).to(uv.device)
     bi = bw = None
-    if bilinear and texels is not None:
+    if bilinear and texels:
         K = max(p["tex"][0].shape[1] for p in parts)
         bi = torch.cat([torch.cat([p["tex"][0], p["tex"][0][:, :1].expand(-1, K - p["tex"][0].shape[1])], 1)
                         for p in parts])
@@ -402,9 +437,8 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         pair_light=torch.cat(pl), angles=angles, irradiance=torch.cat(irr), view=view, pixel=cat("pixel"),
         uv=uv, n=cat("n"), v=cat("v"), bilinear_index=bi, bilinear_weight=bw,
         env_terms=[(light, torch.cat(idx)) for light, idx in envs_all.values()], drops=drops,
-        n_views=len(parts), image_size=[p["size"] for p in parts], n_lights=max(len(lights), 1),
+        n_views=len(parts), image_size=[p["size"] for p in parts], n_lights=n_lights,
         noise_residual=cat("noise"))
-
 
 def _random_unit(n: int, gen: torch.Generator, dtype) -> Tensor:
     x = torch.randn(n, 3, generator=gen, dtype=dtype)
