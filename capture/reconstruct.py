@@ -1319,6 +1319,16 @@ def _direction_lines(d: dict | None) -> list[str]:
     return out
 
 
+def _options_lines(options: Mapping[str, object] | None) -> list[str]:
+    """The fast solver's options that differ from :class:`FitOptions`' defaults, as one summary line (none for the
+    adam solver, whose report has no options; report.json holds them all)."""
+    if not options:
+        return []
+    default = FitOptions().to_dict()
+    changed = {k: v for k, v in options.items() if default.get(k, v) != v}
+    return ["solver options: " + (", ".join(f"{k}={v}" for k, v in changed.items()) if changed else "defaults")]
+
+
 def _summary(r: Report) -> str:
     lines = [f"model {r.model}  solver {r.solver}  total {r.times.get('total', 0):.1f} s  "
              + "  ".join(f"{k} {v:.1f}s" for k, v in r.times.items() if k != "total"),
@@ -1326,6 +1336,7 @@ def _summary(r: Report) -> str:
              + ", ".join(f"{k} {v}" for k, v in r.drops.items() if v),
              f"texels observed {r.coverage.get('observed')} / {r.coverage.get('texels')}; unobservable "
              + ", ".join(f"{k} {v}" for k, v in r.coverage.get("unobservable", {}).items())]
+    lines.extend(_options_lines(r.fit.get("options")))
     fps = r.samples.get("footprints")
     if fps:
         lines.append(f"image formation: pixel footprints, {fps['pixels']} whole pixels of {fps['samples']} shaded rays "

@@ -42,3 +42,14 @@ def test_summary_error_table_words_and_advice():
     r = _report()
     r.coverage["directions"]["advice"] = []
     assert "advice: none" in _summary(r)
+
+
+def test_summary_names_the_solver_options_that_differ_from_the_defaults():
+    from capture.fit.options import FitOptions
+
+    r = _report()
+    assert "solver options" not in _summary(r)                          # adam: no options in the report
+    r.fit["options"] = FitOptions.of(sampling="bilinear", footprint_iterations=2).to_dict()
+    assert "solver options: sampling=bilinear, footprint_iterations=2\n" in _summary(r)
+    r.fit["options"] = FitOptions().to_dict()
+    assert "solver options: defaults\n" in _summary(r)
