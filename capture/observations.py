@@ -63,7 +63,9 @@ class Observations:
         irradiance: ``[Q, 3]`` E·V of the pairs (visibility included).
         view: ``[S]`` int64 view index; pixel: ``[S]`` int64 flat pixel index y·W + x in its view.
         uv: ``[S, 2]``; n, v: ``[S, 3]`` unit shading normal and view direction.
-        bilinear_index, bilinear_weight: ``[S, 4]`` optional bilinear texels/weights of the UV.
+        bilinear_index, bilinear_weight: ``[S, K]`` optional texels/weights each sample reads: the bilinear taps of
+            its uv (K = 4), or for pixel footprints its ray's texture footprint (``observe_views(texels=...)``;
+            rows padded with their first texel at weight 0).
         env_terms: environment lights ``(light, sample index [E])`` (evaluated with
             ``model.environment``), usually empty.
         drops: pixels dropped per reason (:data:`DROP_REASONS`), summed over views.
