@@ -127,7 +127,8 @@ class Observations:
 
     def footprint(self) -> Tensor:
         """``[T]`` bool: texels some sample reads — its nearest texel, and with bilinear observations any
-        of its four texels with a positive weight (observed too, through their neighbours' samples)."""
+        of its texels (bilinear taps or texture footprint) with a positive weight (observed too, through their
+        neighbours' samples)."""
         seen = torch.zeros(self.n_texels, dtype=torch.bool, device=self.device)
         seen[self.texel] = True
         if self.bilinear_index is not None:
