@@ -97,19 +97,36 @@ def _add_synth_args(p: argparse.ArgumentParser) -> None:
                    help="replace an existing dataset folder")
 
 
-def _cmd_reconstruct(args) -> int:
+def _reconstruct_options(args) -> dict:
+    """``reconstruct``'s keyword arguments from the flags of :func:`_add_reconstruct_args` (shared by ``reconstruct``
+    and ``batch``)."""
     import torch
 
+    return dict(model=args.model, force=args.force, solver=args.solver, loss=args.loss, texture_size=args.tex,
+                holdout=args.holdout, footprint=not args.pixel_centres, sampling=args.sampling, threads=args.threads,
+                dtype=torch.float64 if args.float64 else torch.float32, **known_options(args),
+                **fit_option_values(args))
+
+
+def _cmd_reconstruct(args) -> int:
     from capture.reconstruct import reconstruct
 
-    extra = fit_option_values(args)
-    report = reconstruct(args.dataset, model=args.model, out_dir=args.out, force=args.force,
-                         solver=args.solver, loss=args.loss, texture_size=args.tex, holdout=args.holdout,
-                         footprint=not args.pixel_centres, sampling=args.sampling, threads=args.threads,
-                         dtype=torch.float64 if args.float64 else torch.float32, **known_options(args), **extra)
+    report = reconstruct(args.dataset, out_dir=args.out, **_reconstruct_options(args))
     summary = Path(args.out) / "summary.txt"
     print(summary.read_text() if summary.exists() else report)
     return 0
+
+
+def _cmd_batch(args) -> int:
+    from capture.batch import reconstruct_batch
+
+    # interrupted: the captures finished so far are kept, and batch.json lists them
+    args.completed = [Path(args.out) / "batch.json"]
+    items = reconstruct_batch(args.datasets, args.out, **_reconstruct_options(args))
+    failed = [it for it in items if it.status == "failed"]
+    print(f"wrote {Path(args.out) / 'batch.json'}: {sum(it.status == 'done' for it in items)} done, "
+          f"{sum(it.status == 'skipped' for it in items)} skipped, {len(failed)} failed")
+    return 1 if failed else 0
 
 
 def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
@@ -449,6 +466,12 @@ def _add_reconstruct_command_args(p: argparse.ArgumentParser) -> None:
     _add_reconstruct_args(p)
 
 
+def _add_batch_command_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("datasets", nargs="+", help="dataset folders, or folders holding them")
+    p.add_argument("--out", required=True, help="folder for one output folder per dataset and batch.json")
+    _add_reconstruct_args(p)
+
+
 def _add_export_command_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("recon_dirs", nargs="+", help="reconstruction output folders")
     _add_export_args(p)
@@ -459,6 +482,8 @@ COMMANDS = {
     "demo": ("synthesise the default scene, reconstruct, export the atlas, print errors", _add_demo_args, _cmd_demo),
     "synth": ("write a synthetic dataset with ground truth", _add_synth_args, _cmd_synth),
     "reconstruct": ("recover material maps from a dataset", _add_reconstruct_command_args, _cmd_reconstruct),
+    "batch": ("reconstruct many datasets, each into its own folder; failures recorded, finished ones skipped",
+              _add_batch_command_args, _cmd_batch),
     "export-atlas": ("pack reconstructions into a Schüler two-RGBA atlas (+ glTF)", _add_export_command_args,
                      _cmd_export),
     "import": ("import a real capture (COLMAP, transforms.json, OpenCV YAML) as a dataset", _add_import_args,

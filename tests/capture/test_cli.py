@@ -127,7 +127,7 @@ def test_the_scripts_are_the_commands_under_their_own_name(tmp_path, capsys):
         sub = build_parser()._subparsers._group_actions[0].choices[command]
         flags = lambda p: [(tuple(a.option_strings), a.dest, a.default) for a in p._actions]  # noqa: E731
         assert flags(command_parser(command, f"{script}.py")) == flags(sub)
-    assert set(COMMANDS) == {"demo", "synth", "reconstruct", "export-atlas", "import", "calibrate-lights",
+    assert set(COMMANDS) == {"demo", "synth", "reconstruct", "batch", "export-atlas", "import", "calibrate-lights",
                              "merge-hdr", "models"}
     assert _script("reconstruct").main([str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
     assert capsys.readouterr().err.startswith("reconstruct.py: error:")
