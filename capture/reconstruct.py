@@ -115,6 +115,7 @@ class Report:
     views: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     model_spec: dict = field(default_factory=dict)
+    memory: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -544,6 +545,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         _report_errors(report, data.ds, fitted, seen, known_maps)
         renders = _rerender_views(report, data, fitted, seen)
 
+    report.memory = _peak_memory()
     _write_outputs(inputs.out_dir, data.ds, fitted.fit, seen.obs, renders, seen.photos, report, times, force,
                    max_grid_views, spt, vpt, known_maps, prog)
     return report
@@ -1319,6 +1321,30 @@ def _direction_lines(d: dict | None) -> list[str]:
     return out
 
 
+def _peak_memory() -> dict:
+    """The process's peak resident memory so far (``peak_rss_bytes``; the reconstruction's own peak when it is the
+    process's main work, as with the command line) and, where CUDA is in use, torch's peak allocation on the
+    device (``cuda_peak_bytes``)."""
+    out = {}
+    try:
+        import resource
+        import sys
+
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        out["peak_rss_bytes"] = int(rss if sys.platform == "darwin" else rss * 1024)    # Linux reports KiB
+    except (ImportError, OSError):       # no getrusage (Windows): not reported
+        pass
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        out["cuda_peak_bytes"] = int(torch.cuda.max_memory_allocated())
+    return out
+
+
+def _memory_text(memory: Mapping[str, int]) -> str:
+    parts = [f"{name} {memory[key] / 2 ** 30:.2f} GiB" for key, name in
+             (("peak_rss_bytes", "peak memory"), ("cuda_peak_bytes", "CUDA peak")) if key in memory]
+    return ("  " + "  ".join(parts)) if parts else ""
+
+
 def _options_lines(options: Mapping[str, object] | None) -> list[str]:
     """The fast solver's options that differ from :class:`FitOptions`' defaults, as one summary line (none for the
     adam solver, whose report has no options; report.json holds them all)."""
@@ -1331,7 +1357,7 @@ def _options_lines(options: Mapping[str, object] | None) -> list[str]:
 
 def _summary(r: Report) -> str:
     lines = [f"model {r.model}  solver {r.solver}  total {r.times.get('total', 0):.1f} s  "
-             + "  ".join(f"{k} {v:.1f}s" for k, v in r.times.items() if k != "total"),
+             + "  ".join(f"{k} {v:.1f}s" for k, v in r.times.items() if k != "total") + _memory_text(r.memory),
              f"samples {r.samples.get('valid')} valid of {r.samples.get('pixels')} pixels; dropped "
              + ", ".join(f"{k} {v}" for k, v in r.drops.items() if v),
              f"texels observed {r.coverage.get('observed')} / {r.coverage.get('texels')}; unobservable "

@@ -53,3 +53,10 @@ def test_summary_names_the_solver_options_that_differ_from_the_defaults():
     assert "solver options: sampling=bilinear, footprint_iterations=2\n" in _summary(r)
     r.fit["options"] = FitOptions().to_dict()
     assert "solver options: defaults\n" in _summary(r)
+
+
+def test_summary_first_line_reports_peak_memory():
+    r = _report()
+    assert "peak memory" not in _summary(r).splitlines()[0]
+    r.memory = {"peak_rss_bytes": 3 * 2 ** 30 // 2, "cuda_peak_bytes": 2 ** 30}
+    assert _summary(r).splitlines()[0].endswith("  peak memory 1.50 GiB  CUDA peak 1.00 GiB")
