@@ -59,7 +59,7 @@ from materials.model import Model
 from renderer.gbuffer import footprint_extent, pixel_filter, render_footprint
 from renderer.shading import prepare
 
-from .observations import ObservationError, Observations, noise_residual, observe_views
+from .observations import ObservationError, Observations, noise_residual, observe_views, pad_texels
 
 __all__ = ["PixelFootprints", "observe_footprints", "footprint_counts", "texture_footprints", "FOOTPRINT_SPACING",
            "FOOTPRINT_MAX", "SEAM_TEXELS"]
@@ -295,7 +295,7 @@ def texture_footprints(mesh, camera, g, k: Tensor, kt: Tensor, map_size: tuple[i
     H, W = map_size
     extent = footprint_extent(psf_sigma)
     N = len(g)
-    m = torch.div(kt + k - 1, k, rounding_mode="floor").clamp_min(1)
+    m = _sub_samples(k, kt)
     rows = []
     share = torch.zeros(N, dtype=torch.float64)
     xy, _ = camera.project(g.position.to(torch.float64))
@@ -331,10 +331,14 @@ def texture_footprints(mesh, camera, g, k: Tensor, kt: Tensor, map_size: tuple[i
     index = torch.zeros(N, K, dtype=torch.long)
     weight = torch.zeros(N, K, dtype=torch.float64)
     for sel, bi, wt in rows:
-        index[sel] = bi[:, :1].expand(-1, K)
-        index[sel, :bi.shape[1]] = bi
-        weight[sel, :bi.shape[1]] = wt
+        index[sel], weight[sel] = pad_texels(bi, wt, K)
     return share, index, weight
+
+
+def _sub_samples(k: Tensor, kt: Tensor) -> Tensor:
+    """``m = ceil(kt / k)``: texture sub-samples per axis of each ray's stratum (``k`` rays per axis of the pixel, of
+    which ``kt`` texture samples are needed; 0 where ``k`` is, for pixels not cast)."""
+    return torch.div(kt + k - 1, k.clamp_min(1), rounding_mode="floor")
 
 
 def _distinct(index: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
@@ -400,8 +404,7 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
                                                psf_sigma)
         g.weight = share.to(g.weight.dtype)
         texels.append((t_idx, t_w))
-        m_of = torch.div(kt_of + k_of - 1, k_of.clamp_min(1), rounding_mode="floor")
-        sub += int(((k_of * m_of)[whole] ** 2).sum())
+        sub += int(((k_of * _sub_samples(k_of, kt_of))[whole] ** 2).sum())
         preps.append(prepare(g, mesh, lights_per_view[vi], shadows=shadows))
         kk = torch.zeros(HW, dtype=torch.long)
         kk[pixels] = k * k

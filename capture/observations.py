@@ -37,7 +37,7 @@ from materials.geometry import Angles
 from materials.model import Model
 from renderer.shading import radiance_sum
 
-__all__ = ["Observations", "ObservationError", "DROP_REASONS", "observe_views", "synthetic_observations"]
+__all__ = ["Observations", "ObservationError", "DROP_REASONS", "observe_views", "pad_texels", "synthetic_observations"]
 
 #: Drop reasons in the order they are tested (each pixel is counted once, under the first that applies).
 DROP_REASONS = ("background", "nonfinite", "clipped", "backfacing", "shadowed", "unlit")
@@ -397,6 +397,13 @@ def _view_pairs(prep, ok: Tensor, local: Tensor, light_id: dict[int, int], dt) -
     return pairs, envs
 
 
+def pad_texels(index: Tensor, weight: Tensor, K: int) -> tuple[Tensor, Tensor]:
+    """Rows of texels ``index [N, k]`` and weights ``[N, k]`` widened to ``K ≥ k`` columns: each row padded with its
+    first texel at weight 0, which reads nothing and adds no new texel to the row."""
+    extra = K - index.shape[1]
+    return torch.cat([index, index[:, :1].expand(-1, extra)], 1), F.pad(weight, (0, extra))
+
+
 def _concatenate(parts: list[dict], drops: dict, map_size: tuple[int, int], *, bilinear: bool, texels: bool,
                  n_lights: int) -> Observations:
     """The views' samples (:func:`_observe_view`) as one :class:`Observations`, sample indices offset per view."""
@@ -429,9 +436,8 @@ def _concatenate(parts: list[dict], drops: dict, map_size: tuple[int, int], *, b
     bi = bw = None
     if bilinear and texels:
         K = max(p["tex"][0].shape[1] for p in parts)
-        bi = torch.cat([torch.cat([p["tex"][0], p["tex"][0][:, :1].expand(-1, K - p["tex"][0].shape[1])], 1)
-                        for p in parts])
-        bw = torch.cat([F.pad(p["tex"][1], (0, K - p["tex"][1].shape[1])) for p in parts])
+        padded = [pad_texels(*p["tex"], K) for p in parts]
+        bi, bw = torch.cat([x[0] for x in padded]), torch.cat([x[1] for x in padded])
     elif bilinear:
         bi, bw = bilinear_weights(uv, H, W)
     return Observations(

@@ -43,16 +43,15 @@ class PixelJacobian(NamedTuple):
     At: Tensor
 
 
-def sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True,
-                      backward: bool = True) -> tuple[Tensor | None, Tensor | None]:
-    """Sparse CSR matrices ``[S, T]`` (None unless ``forward``) and ``[T, S]`` (None unless ``backward``) of the
-    sampling footprint: row s holds sample s's weights at its texels ``idx [S, K]`` (``weight [S, K]``); the
-    transpose is built directly, not transposed."""
+def sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True) -> tuple[Tensor | None, Tensor]:
+    """Sparse CSR matrices ``[S, T]`` (None unless ``forward``) and ``[T, S]`` of the sampling footprint: row s
+    holds sample s's weights at its texels ``idx [S, K]`` (``weight [S, K]``); the transpose is built
+    directly, not transposed."""
     S, K = idx.shape
     rows = torch.arange(S, device=idx.device).repeat_interleave(K)
     cols, vals = idx.reshape(-1), weight.reshape(-1)
     fwd = _csr(rows, cols, vals, (S, T)) if forward else None
-    return fwd, (_csr(cols, rows, vals, (T, S)) if backward else None)
+    return fwd, _csr(cols, rows, vals, (T, S))
 
 
 class CsrPattern(NamedTuple):
@@ -68,10 +67,11 @@ class CsrPattern(NamedTuple):
     @classmethod
     def of(cls, rows: Tensor, cols: Tensor, shape: tuple[int, int]) -> CsrPattern:
         # rows already in order (a sampling operator's, the entries' pixels) need no sort: one pass to check
-        ordered = rows.numel() < 2 or bool((rows[1:] >= rows[:-1]).all())
-        # 32-bit keys sort 1.6× faster (0.30 against 0.48 s for 13 M keys, 2 threads), same stable order
-        keys = rows.to(torch.int32) if shape[0] < 2 ** 31 else rows
-        order = torch.arange(rows.numel(), device=rows.device) if ordered else torch.argsort(keys, stable=True)
+        if rows.numel() < 2 or bool((rows[1:] >= rows[:-1]).all()):
+            order = torch.arange(rows.numel(), device=rows.device)
+        else:
+            # 32-bit keys sort 1.6× faster (0.30 against 0.48 s for 13 M keys, 2 threads), same stable order
+            order = torch.argsort(rows.to(torch.int32) if shape[0] < 2 ** 31 else rows, stable=True)
         crow = torch.zeros(shape[0] + 1, dtype=torch.long, device=rows.device)
         crow[1:] = torch.bincount(rows, minlength=shape[0]).cumsum(0)
         return cls(order, crow, cols[order], shape)
