@@ -149,17 +149,15 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
 
 
-def add_fit_option_args(p: argparse.ArgumentParser, names: tuple[str, ...] | None = None) -> None:
+def add_fit_option_args(p: argparse.ArgumentParser) -> None:
     """The solver options' flags, generated from :class:`capture.fit.options.FitOptions` (its declaration holds
-    each flag's type, choices and help): ``--iterations``, ``--pooled``, ``--footprint-iterations``, … (only
-    ``names`` when given). Not given = None, so the option's default or the caller's decision applies;
-    :func:`fit_option_values` reads them back."""
+    each flag's type, choices and help): ``--iterations``, ``--pooled``, ``--footprint-iterations``, … Not given =
+    None, so the option's default or the caller's decision applies; :func:`fit_option_values` reads them back."""
     from capture.fit.options import FitOptions
 
     group = p.add_argument_group("solver options (capture.fit.options.FitOptions)")
     for name, kw in FitOptions.cli_flags():
-        if names is None or name in names:
-            group.add_argument("--" + name.replace("_", "-"), dest=name, default=None, **kw)
+        group.add_argument("--" + name.replace("_", "-"), dest=name, default=None, **kw)
 
 
 def fit_option_values(args) -> dict:

@@ -216,8 +216,9 @@ def face_uv(mesh: Mesh, camera: Camera, face: Tensor, xy: Tensor) -> tuple[Tenso
     e0, e1 = b - a, c - a
     n = torch.linalg.cross(e0, e1)
     den = (d * n).sum(-1)
-    t = ((a - o) * n).sum(-1) / torch.where(den.abs() > 1e-12 * n.norm(dim=-1), den, torch.ones_like(den))
-    ok = (den.abs() > 1e-12 * n.norm(dim=-1)) & (t > 0)
+    crossing = den.abs() > 1e-12 * n.norm(dim=-1)                  # the ray is not parallel to the plane
+    t = ((a - o) * n).sum(-1) / torch.where(crossing, den, torch.ones_like(den))
+    ok = crossing & (t > 0)
     q = o + t[:, None] * d - a
     d00, d01, d11 = (e0 * e0).sum(-1), (e0 * e1).sum(-1), (e1 * e1).sum(-1)
     d20, d21 = (q * e0).sum(-1), (q * e1).sum(-1)
