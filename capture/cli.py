@@ -66,7 +66,7 @@ def _cmd_synth(args) -> int:
     over["photo"] = photo
     cfg = small_scene(**over) if args.config == "small" else default_scene(**over)
     t0 = time.perf_counter()
-    out = make_synthetic(cfg, args.out, overwrite=args.overwrite)
+    out = make_synthetic(cfg, args.out, overwrite=args.overwrite, device=args.device)
     print(f"wrote {out} ({cfg.n_views} views) in {time.perf_counter() - t0:.1f} s")
     return 0
 
@@ -93,6 +93,7 @@ def _add_synth_args(p: argparse.ArgumentParser) -> None:
                    "the fit's own pixel-centre discretisation)")
     p.add_argument("--sampling", choices=("bilinear", "nearest"))
     p.add_argument("--seed", type=int)
+    add_device_arg(p, "the shading", default="cpu")
     p.add_argument("--overwrite", "--force", dest="overwrite", action="store_true",
                    help="replace an existing dataset folder")
 
@@ -104,6 +105,7 @@ def _reconstruct_options(args) -> dict:
 
     return dict(model=args.model, force=args.force, solver=args.solver, loss=args.loss, texture_size=args.tex,
                 holdout=args.holdout, footprint=not args.pixel_centres, sampling=args.sampling, threads=args.threads,
+                device=args.device,
                 dtype=torch.float64 if args.float64 else torch.float32, **known_options(args),
                 **fit_option_values(args))
 
@@ -142,11 +144,19 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sampling", choices=("nearest", "bilinear"), default=None,
                    help="how samples read the maps (default: bilinear, as a texture-mapped renderer reads them)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (1 is faster on a loaded machine)")
+    add_device_arg(p, "the fits")
     p.add_argument("--float64", action="store_true", help="evaluate the model in float64 (precision studies)")
     add_fit_option_args(p)
     add_known_args(p)
     add_holdout_arg(p)
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+
+
+def add_device_arg(p: argparse.ArgumentParser, what: str, default: str = "auto") -> None:
+    """``--device cpu|cuda|cuda:N|auto`` (:func:`renderer.device.resolve_device`), where ``what`` runs."""
+    p.add_argument("--device", default=default, metavar="auto|cpu|cuda[:N]",
+                   help=f"where {what} run: auto (CUDA when torch sees a GPU), cpu, cuda or cuda:N; default {default}; "
+                        f"rays are cast on the CPU either way")
 
 
 def add_fit_option_args(p: argparse.ArgumentParser) -> None:
@@ -307,11 +317,11 @@ def _cmd_demo(args) -> int:
     print(f"[1/3] synthesising the {'small' if args.small else 'default'} scene ({cfg.n_views} views of "
           f"{size(cfg.image_size)} px, {size(cfg.texture_size)} maps, model {model_name}) → {out / 'dataset'}")
     args.completed = []
-    make_synthetic(cfg, out / "dataset", overwrite=True)
+    make_synthetic(cfg, out / "dataset", overwrite=True, device=args.device)
     args.completed.append(out / "dataset")
     t1 = time.perf_counter()
     print(f"      {t1 - t0:.1f} s\n[2/3] reconstructing with model {args.model} → {out / 'recon'}")
-    report = reconstruct(out / "dataset", model=args.model, out_dir=out / "recon", force=True)
+    report = reconstruct(out / "dataset", model=args.model, out_dir=out / "recon", force=True, device=args.device)
     args.completed.append(out / "recon")
     t2 = time.perf_counter()
     print(f"      {t2 - t1:.1f} s\n[3/3] exporting the Schüler atlas → {out / 'atlas'}")
@@ -455,6 +465,7 @@ def _add_demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--model", default="ggx-lambert", help="model to reconstruct with (or 'auto')")
     p.add_argument("--small", action="store_true", help="a small, fast scene instead of the default one")
+    add_device_arg(p, "the shading and the fits")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
 
 

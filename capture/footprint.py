@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 import torch.nn.functional as F
@@ -138,6 +138,15 @@ class PixelFootprints:
     @property
     def device(self) -> torch.device:
         return self.radiance.device
+
+    def to(self, device=None, dtype=None) -> PixelFootprints:
+        """Move to ``device`` and cast floating tensors to ``dtype`` (the samples with
+        :meth:`capture.observations.Observations.to`)."""
+        def mv(x):
+            return x.to(device=device, dtype=dtype if x.is_floating_point() else None) if isinstance(x, Tensor) else x
+        kw = {f.name: mv(getattr(self, f.name)) for f in fields(self)}
+        kw["samples"] = self.samples.to(device=device, dtype=dtype)
+        return PixelFootprints(**kw)
 
     def predict(self, model: Model, maps_flat: dict) -> Tensor:
         """Predicted pixel radiance ``[R, 3]``: ``Σ_{s ∈ i} share_s · L_s`` with ``L_s`` the model's radiance at

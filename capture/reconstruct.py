@@ -116,6 +116,7 @@ class Report:
     warnings: list = field(default_factory=list)
     model_spec: dict = field(default_factory=dict)
     memory: dict = field(default_factory=dict)
+    device: str = "cpu"             #: where the fits ran (:mod:`renderer.device`)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -430,7 +431,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                 max_grid_views: int = 8, sampling: str | None = None,
                 threads: int | None = None, known: Mapping[str, object] | None = None,
                 scalars: tuple[str, ...] | list[str] = SCALARS, holdout: Sequence[int] | None = None,
-                footprint: bool = True, psf_sigma: float | None = None, **options) -> Report:
+                footprint: bool = True, psf_sigma: float | None = None, device: str = "auto", **options) -> Report:
     """Recover the material maps of a dataset and write them to ``out_dir`` (see module docstring).
 
     Args:
@@ -458,6 +459,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             False fits one ray per pixel centre only: exact only for photos rendered that way.
         psf_sigma: σ (pixels) of a Gaussian blur (lens, demosaicing) in the photos' pixel filter, convolved with
             the box; None = the dataset's ``psf_sigma`` (0 when scene.json has none).
+        device: where the fits run: "cpu", "cuda" (or "cuda:N") or "auto" (CUDA when torch sees a GPU, the default);
+            the ray casting, observations and metrics stay on the CPU (:mod:`renderer.device`).
         threads: torch intra-op threads for this call (restored after); None = leave as is. On a
             machine where another process holds a core, 1 thread is much faster than 2 (measured
             ~70× on small index_add ops: OpenMP threads wait for the busy core).
@@ -513,7 +516,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
             return reconstruct(**{**args, "progress": bar}, **options)
     times: dict[str, float] = {}
     with _timed(times, "load"):
-        inputs = _check_inputs(dataset_path, model, out_dir, force, solver, loss, auto_chi2, known, scalars, options)
+        inputs = _check_inputs(dataset_path, model, out_dir, force, solver, loss, auto_chi2, known, scalars, options,
+                               device)
         prog = progress if isinstance(progress, Progress) else Progress(_stages(model, solver, footprint, sampling),
                                                                         enabled=False)
         data = _load(dataset_path, holdout, prog)
@@ -521,9 +525,9 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         preps = _gbuffers(data.ds, prog)
     with _timed(times, "observe"):
         seen = _observe(data, preps, solver, sampling, texture_size, footprint, psf_sigma, dtype, options, prog)
-    report = Report(model="", solver=solver, out_dir=str(inputs.out_dir))
+    report = Report(model="", solver=solver, out_dir=str(inputs.out_dir), device=str(inputs.device))
     _report_samples(report, data, seen, footprint, solver)
-    fitter = _Fitter(solver, loss, seen.options, inputs.scalars, _solver_progress(prog))
+    fitter = _Fitter(solver, loss, seen.options, inputs.scalars, _solver_progress(prog), inputs.device)
 
     with _timed(times, "select"):
         if len(inputs.candidates) > 1:
@@ -575,10 +579,11 @@ class _Inputs:
     candidates: list[str]           #: the models to fit: ``[model]``, or auto's registered candidates
     known: dict[str, object]        #: parameters held at given values
     scalars: tuple[str, ...]        #: parameters fitted as one value per object, less the known ones
+    device: torch.device            #: where the fits run
 
 
 def _check_inputs(dataset_path, model: str, out_dir, force: bool, solver: str, loss: str, auto_chi2,
-                  known: Mapping[str, object] | None, scalars, options: Mapping[str, object]) -> _Inputs:
+                  known: Mapping[str, object] | None, scalars, options: Mapping[str, object], device) -> _Inputs:
     """Check :func:`reconstruct`'s arguments before any work (the dataset is not read yet): a ReconstructionError
     naming the fix for a missing or unusable output folder, a loaded dataset instead of its folder, an unknown
     solver, solver option, loss or model, a bad ``auto_chi2``, ``scalars`` or known value."""
@@ -619,7 +624,13 @@ def _check_inputs(dataset_path, model: str, out_dir, force: bool, solver: str, l
                                       f"their parameters are {sorted(params)}")
     for c in candidates:
         _model(c, known)  # unknown names and bad known values fail before any work
-    return _Inputs(out_dir, candidates, known, scalars)
+    from renderer.device import DeviceError, resolve_device
+
+    try:
+        dev = resolve_device(device)
+    except DeviceError as e:
+        raise ReconstructionError(str(e)) from None
+    return _Inputs(out_dir, candidates, known, scalars, dev)
 
 
 # -- load dataset and G-buffers ---------------------------------------------------------------------
@@ -822,12 +833,19 @@ class _Fitter:
     options: dict                   #: the solver's options (:attr:`_Observed.options`)
     scalars: tuple[str, ...]        #: parameters fitted as one value per object
     progress: Callable[[str, int, float], None]
+    device: torch.device = torch.device("cpu")     #: where the fits run
 
     def fit(self, model, obs: Observations,
             footprints: PixelFootprints | None = None) -> tuple[FitResult, object, dict]:
-        """:func:`_fit` of ``model`` to ``obs`` (and, when given, the pixel ``footprints``)."""
+        """:func:`_fit` of ``model`` to ``obs`` (and, when given, the pixel ``footprints``) on :attr:`device`: the
+        observations go there for the fit and the result comes back to the CPU."""
+        moved = obs.device != self.device
+        if moved:
+            obs = obs.to(self.device)
+            footprints = footprints.to(self.device) if footprints is not None else None
         options = {**self.options, "footprints": footprints} if footprints is not None else self.options
-        return _fit(model, obs, self.solver, self.loss, options, self.progress, self.scalars)
+        fit, model, notes = _fit(model, obs, self.solver, self.loss, options, self.progress, self.scalars)
+        return (fit.to("cpu") if moved else fit), model, notes
 
 
 class _Trial(NamedTuple):
@@ -1356,7 +1374,7 @@ def _options_lines(options: Mapping[str, object] | None) -> list[str]:
 
 
 def _summary(r: Report) -> str:
-    lines = [f"model {r.model}  solver {r.solver}  total {r.times.get('total', 0):.1f} s  "
+    lines = [f"model {r.model}  solver {r.solver}  device {r.device}  total {r.times.get('total', 0):.1f} s  "
              + "  ".join(f"{k} {v:.1f}s" for k, v in r.times.items() if k != "total") + _memory_text(r.memory),
              f"samples {r.samples.get('valid')} valid of {r.samples.get('pixels')} pixels; dropped "
              + ", ".join(f"{k} {v}" for k, v in r.drops.items() if v),

@@ -23,7 +23,8 @@ cost of both (capture.bench.models.run_approximation_benchmark), with its cost-a
 (capture.bench.reconstruction.run_reconstruction_benchmark), its Pareto plot (--figure), and sweeps of the fast path
 over texture resolution and number of materials.
 
-    python scripts/benchmark.py independent [--datasets tests/fixtures/mitsuba/*] [--out docs/benchmarks.md]
+    python scripts/benchmark.py independent [--datasets tests/fixtures/mitsuba/*] [--device cpu|cuda]
+        [--out docs/benchmarks.md]
 
 `independent`: reconstruct datasets rendered by another renderer (scripts/make_independent_fixtures.py; the committed
 fixtures by default, `--full` renders of the benchmark size elsewhere) with pixel centres and with pixel footprints
@@ -67,7 +68,8 @@ if __name__ == "__main__":
     ap.add_argument("--adam", nargs="*", default=["0.05:200", "0.02:500"], help="Adam runs as LR:ITERATIONS")
     ap.add_argument("--no-variants", action="store_true", help="fast path with default options only")
     ap.add_argument("--n", type=int, default=1 << 20, help="samples per evaluation")
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--device", default="cpu", help="models, independent: where the evaluations and fits run "
+                    "(cpu, cuda, cuda:N or auto)")
     ap.add_argument("--compile", nargs="*", default=None,
                     help="models to also time under torch.compile (default: the common ones)")
     ap.add_argument("--out", default=None, help="markdown file to write results into")
@@ -75,7 +77,7 @@ if __name__ == "__main__":
     ap.add_argument("--no-sweeps", action="store_true", help="reconstruction: skip the texture/material sweeps")
     args = ap.parse_args()
     if args.what == "independent":
-        print(run_independent_benchmark(args.datasets, out=args.out, threads=args.threads))
+        print(run_independent_benchmark(args.datasets, out=args.out, threads=args.threads, device=args.device))
     elif args.what == "models":
         print(run_models_benchmark(n=args.n, device=args.device, compile_names=args.compile, out=args.out))
     elif args.what == "approximations":

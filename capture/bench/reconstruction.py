@@ -12,6 +12,8 @@ import time
 
 import torch
 
+from renderer.device import resolve_device
+
 from .timing import growth_exponent, machine_description, peak_rss_mib
 
 
@@ -229,12 +231,13 @@ INDEPENDENT_INTRO = (
     "independent --datasets tests/fixtures/mitsuba/* DIR/* --out docs/benchmarks.md`.\n\n")
 
 
-def run_independent_benchmark(datasets, out: str | None = None, threads: int | None = None) -> str:
+def run_independent_benchmark(datasets, out: str | None = None, threads: int | None = None,
+                              device: str = "cpu") -> str:
     """Reconstruct datasets whose photos another renderer made (docs/independent-renders.md) with the model that
     rendered them, fitting pixel centres and pixel footprints, and tabulate time, χ², worst view and the RMSE per
     texel set of :func:`capture.reconstruct.reconstruct`'s report (docs/image-formation.md, "What to expect").
     Each dataset's ground-truth model is the model fitted (the benchmark asks how well the fit recovers the maps
-    of a known model; ``auto`` is judged elsewhere)."""
+    of a known model; ``auto`` is judged elsewhere). ``device``: where the fits run (:mod:`renderer.device`)."""
     import tempfile
     from pathlib import Path
 
@@ -242,7 +245,8 @@ def run_independent_benchmark(datasets, out: str | None = None, threads: int | N
     from ..reconstruct import reconstruct
     from ..report import replace_section
 
-    rows = [f"Machine: {machine_description('cpu', threads)}", "",
+    dev = str(resolve_device(device))
+    rows = [f"Machine: {machine_description(dev, threads)}; fits on `{dev}`", "",
             "| scene | fit | time | χ² / residual | worst view | well lit | well lit, ≥ 1 pixel "
             "| well lit, highlight | well lit, visible highlight |",
             "|---|---|---|---|---|---|---|---|---|"]
@@ -253,7 +257,7 @@ def run_independent_benchmark(datasets, out: str | None = None, threads: int | N
             with tempfile.TemporaryDirectory() as tmp:
                 t0 = time.perf_counter()
                 r = reconstruct(path, model=model, out_dir=f"{tmp}/r", progress=False, footprint=fp,
-                                threads=threads)
+                                threads=threads, device=dev)
                 dt = time.perf_counter() - t0
             sets = r.errors.get("maps_by_texel_set", {})
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 import torch.nn.functional as F
@@ -151,6 +151,14 @@ class FitResult:
     solver: str
     info: dict = field(default_factory=dict)
     raw: dict = field(default_factory=dict)
+
+    def to(self, device) -> FitResult:
+        """The result with every map on ``device`` (the solver's numbers — history, info — as they are)."""
+        def mv(maps: dict) -> dict:
+            return {k: v.to(device) for k, v in maps.items()}
+        return replace(self, maps=mv(self.maps), observed=self.observed.to(device),
+                                   unobservable=mv(self.unobservable), filled=mv(self.filled),
+                                   confidence=mv(self.confidence), sensitivity=mv(self.sensitivity), raw=mv(self.raw))
 
 
 def param_groups(layout: Layout) -> list[list[int]]:

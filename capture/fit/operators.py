@@ -225,8 +225,8 @@ class PixelOperator:
             cols = (self.e_tex[:, None] * P + ps[None]).reshape(-1)
             # the pairs of kept values on the same channel: the terms of the per-texel blocks Σ_c C_cp w_c C_cq
             # (each unordered pair once: the blocks are symmetric)
-            i, j = torch.nonzero((cs[:, None] == cs[None, :]) & (torch.arange(len(cs))[:, None]
-                                                                  <= torch.arange(len(cs))[None, :]), as_tuple=True)
+            order = torch.arange(len(cs), device=cs.device)
+            i, j = torch.nonzero((cs[:, None] == cs[None, :]) & (order[:, None] <= order[None, :]), as_tuple=True)
             self._pattern = (key, cs, ps, CsrPattern.of(rows, cols, (3 * self.R, P * self.T)),
                              CsrPattern.of(cols, rows, (P * self.T, 3 * self.R)),
                              (i, j, ps[i] * P + ps[j], ps[j] * P + ps[i]))

@@ -392,7 +392,7 @@ def _grid_search(model: Model, layout: Layout, obs: Observations, theta: Tensor,
     # each round tries x ± h and the vertex of the parabola through the three costs, keeps
     # the best of the four per texel and shrinks h by 3
     xl = torch.log(values.clamp_min(1e-12))
-    h = (xl[1:] - xl[:-1]).mean() if len(values) > 1 else torch.tensor(0.5, dtype=dt)
+    h = (xl[1:] - xl[:-1]).mean() if len(values) > 1 else torch.tensor(0.5, dtype=dt, device=values.device)
     x = xl[k]
     lo, hi = math.log(max(primary.low, 1e-4)), math.log(primary.high)
     for _ in range(refine):

@@ -552,7 +552,7 @@ def highlight_coverage(prepared: list, texture_size: tuple[int, int], roughness:
 RENDER_BLOCK_RAYS = 1 << 20
 
 
-def render_scene(scene: Scene, config: SyntheticConfig) -> tuple[list[Tensor], list]:
+def render_scene(scene: Scene, config: SyntheticConfig, device="cpu") -> tuple[list[Tensor], list]:
     """Linear radiance images ``[H, W, 3]`` of every view, and the per-view pixel-centre :class:`Prepared`.
 
     Per view, blocks of pixels of at most :data:`RENDER_BLOCK_RAYS` rays: a G-buffer of ``config.supersample``²
@@ -560,7 +560,15 @@ def render_scene(scene: Scene, config: SyntheticConfig) -> tuple[list[Tensor], l
     :func:`renderer.shading.prepare` (shadow rays), :func:`renderer.shading.shade` with ``config.sampling``, and the
     box-filtered average per pixel (misses count as a black background). The returned ``Prepared`` are of the
     pixel centres (one ray per pixel), for statistics such as :func:`highlight_coverage`.
+
+    ``device`` (:func:`renderer.device.resolve_device`): where the shading runs; the rays are cast on the CPU and the
+    images are returned there. The CPU by default: a synthetic dataset is then the same, bit for bit, on every
+    machine (the same photos on CUDA differ in the last bits).
     """
+    from renderer.device import resolve_device
+
+    dev = resolve_device(device)
+    maps = {name: m.to(dev) for name, m in scene.maps.items()}
     images, preps = [], []
     k = config.supersample
     with torch.no_grad():
@@ -570,7 +578,7 @@ def render_scene(scene: Scene, config: SyntheticConfig) -> tuple[list[Tensor], l
             preps.append(prepare(g1, scene.mesh, view.lights, shadows=config.shadows))
             n_pix = cam.height * cam.width
             if k == 1:
-                images.append(g1.to_image(shade(scene.model, scene.maps, preps[-1], sampling=config.sampling)))
+                images.append(g1.to_image(shade(scene.model, maps, preps[-1], sampling=config.sampling).cpu()))
                 continue
             # only pixels whose centre or a neighbour's hits the object can see it (an object thinner than a pixel
             # that no centre ray hits would be missed; the built-in meshes have none)
@@ -587,7 +595,7 @@ def render_scene(scene: Scene, config: SyntheticConfig) -> tuple[list[Tensor], l
                 if len(g) == 0:
                     continue
                 prep = prepare(g, scene.mesh, view.lights, shadows=config.shadows)
-                rad = shade(scene.model, scene.maps, prep, sampling=config.sampling)
+                rad = shade(scene.model, maps, prep, sampling=config.sampling).cpu()
                 if sub is None:
                     acc.index_add_(0, g.pixel, rad.to(acc.dtype) * g.weight[:, None].to(acc.dtype))
                 else:
@@ -616,8 +624,9 @@ def _blur_strata(sub: Tensor, sigma: float, k: int) -> Tensor:
     return F.avg_pool2d(img, k)[:, 0].permute(1, 2, 0)
 
 
-def make_synthetic(config: SyntheticConfig, out_dir, overwrite: bool = False) -> Path:
-    """Render ``config`` and write it as a dataset folder with ground truth; return the folder.
+def make_synthetic(config: SyntheticConfig, out_dir, overwrite: bool = False, device="cpu") -> Path:
+    """Render ``config`` and write it as a dataset folder with ground truth; return the folder. ``device``: where the
+    shading runs (:func:`render_scene`).
 
     Steps: :func:`build_scene` → :func:`render_scene` → photo model per view (seeded
     ``config.seed·1000003 + i``) → :func:`capture.dataset.write_dataset` (atomic, validated).
@@ -626,7 +635,7 @@ def make_synthetic(config: SyntheticConfig, out_dir, overwrite: bool = False) ->
     t0 = time.perf_counter()
     scene = build_scene(config)
     t1 = time.perf_counter()
-    radiance, preps = render_scene(scene, config)
+    radiance, preps = render_scene(scene, config, device)
     t2 = time.perf_counter()
     images, clipped = [], []
     for i, rad in enumerate(radiance):

@@ -1,0 +1,68 @@
+"""Where the fit runs (renderer.device, ``--device``): the spellings, the errors on a machine without CUDA, and — on a
+machine with a GPU (``gpu`` marker; run with the device tool) — CUDA reconstructions and renders that agree with the
+CPU's within float32 rounding on photos Mitsuba 3 rendered."""
+
+import pytest
+import torch
+
+from capture.reconstruct import ReconstructionError, reconstruct
+from renderer.device import DeviceError, resolve_device
+
+NO_CUDA = not torch.cuda.is_available()
+
+
+def test_auto_is_cuda_exactly_when_torch_sees_a_gpu():
+    assert resolve_device("auto") == resolve_device(None)
+    assert resolve_device("auto").type == ("cpu" if NO_CUDA else "cuda")
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device(torch.device("cpu")) == torch.device("cpu")
+
+
+@pytest.mark.parametrize("bad", ["GPU0", "tpu", "cuda:x", 3, ["cpu"]])
+def test_unknown_devices_name_the_spellings(bad):
+    with pytest.raises(DeviceError, match="auto.*cpu.*cuda"):
+        resolve_device(bad)
+
+
+@pytest.mark.skipif(not NO_CUDA, reason="this machine has CUDA")
+def test_cuda_without_a_gpu_says_what_to_do_before_any_work(tmp_path, monkeypatch):
+    with pytest.raises(DeviceError, match="--device cpu"):
+        resolve_device("cuda")
+    # reconstruct fails on its argument, before reading the dataset (the loader would raise otherwise)
+    import capture.dataset
+
+    monkeypatch.setattr(capture.dataset, "load_dataset", lambda *a, **k: pytest.fail("dataset read"))
+    with pytest.raises(ReconstructionError, match="--device cpu"):
+        reconstruct(tmp_path / "ds", model="lambert", out_dir=tmp_path / "out", device="cuda", progress=False)
+
+
+# -- on a GPU ------------------------------------------------------------------------------------------------------
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("name, model", [("torus-lambert", "lambert"),
+                                         ("sphere-ggx-lambert", "lambert+microfacet(D=ggx,G=smith,F=none)")])
+def test_cuda_reconstruction_matches_the_cpu(name, model, mitsuba_scene, tmp_path):
+    """The same fit on both devices: the errors against the ground truth agree to a few 1e-4 (float32 sums in
+    another order take the iterations along slightly different paths), χ² to 2 %."""
+    runs = {d: reconstruct(mitsuba_scene(name), model=model, out_dir=tmp_path / d, device=d, progress=False)
+            for d in ("cpu", "cuda")}
+    assert runs["cuda"].device.startswith("cuda") and runs["cpu"].device == "cpu"
+    assert runs["cuda"].memory["cuda_peak_bytes"] > 0
+    chi2 = [runs[d].fit["chi2_per_residual"] for d in ("cpu", "cuda")]
+    assert chi2[1] == pytest.approx(chi2[0], rel=0.02)
+    for key, errs in runs["cpu"].errors["maps_by_texel_set"]["well_lit"].items():
+        if key != "texels" and isinstance(errs, float):
+            assert runs["cuda"].errors["maps_by_texel_set"]["well_lit"][key] == pytest.approx(errs, abs=5e-4), key
+
+
+@pytest.mark.gpu
+def test_cuda_synthetic_photos_match_the_cpu():
+    from capture.synth import build_scene, render_scene, small_scene
+
+    cfg = small_scene("ggx-lambert", image_size=48, texture_size=32, n_views=2, supersample=2)
+    scene = build_scene(cfg)
+    cpu, _ = render_scene(scene, cfg, device="cpu")
+    gpu, _ = render_scene(scene, cfg, device="cuda")
+    for a, b in zip(cpu, gpu, strict=True):
+        assert b.device.type == "cpu"
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
