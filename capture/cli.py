@@ -124,7 +124,7 @@ def _cmd_batch(args) -> int:
 
     # interrupted: the captures finished so far are kept, and batch.json lists them
     args.completed = [Path(args.out) / "batch.json"]
-    items = reconstruct_batch(args.datasets, args.out, **_reconstruct_options(args))
+    items = reconstruct_batch(args.datasets, args.out, cluster=args.cluster, **_reconstruct_options(args))
     failed = [it for it in items if it.status == "failed"]
     print(f"wrote {Path(args.out) / 'batch.json'}: {sum(it.status == 'done' for it in items)} done, "
           f"{sum(it.status == 'skipped' for it in items)} skipped, {len(failed)} failed")
@@ -478,6 +478,8 @@ def _add_reconstruct_command_args(p: argparse.ArgumentParser) -> None:
 def _add_batch_command_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("datasets", nargs="+", help="dataset folders, or folders holding them")
     p.add_argument("--out", required=True, help="folder for one output folder per dataset and batch.json")
+    p.add_argument("--cluster", metavar="ADDRESS", help="tcp://host:8786 of a running Dask scheduler, or local[:N] to "
+                   "start N worker processes here; default: one after another in this process")
     _add_reconstruct_args(p)
 
 
