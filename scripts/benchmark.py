@@ -36,6 +36,13 @@ fixtures by default, `--full` renders of the benchmark size elsewhere) with pixe
 views and the per-region maps (capture.bench.measured.capture_benchmark); prints the tables of docs/measured-fits.md,
 "Capture of measured materials" (needs the NBRDF weights, ≈ 5 min on one thread).
 
+    python scripts/benchmark.py scale [--configs 8x256x256 32x512x512 ... | none] [--devices cpu cuda] [--threads N]
+        [--work DIR] [--rows-json FILE] [--earlier ROWS.json ...] [--out docs/benchmarks.md]
+        [--figure docs/figures/scale.png]
+
+`scale`: time and peak memory of `shadecap reconstruct` end to end against the observed pixels (VIEWSxIMAGExMAPS
+configurations), per stage and device, with growth exponents (capture.bench.scale.run_scale_benchmark).
+
 Results go to stdout and, with --out, into the generated sections of docs/benchmarks.md.
 """
 
@@ -53,11 +60,24 @@ from capture.bench import (
     run_reconstruction_benchmark,
     run_scaling_benchmark,
 )
+from capture.bench.scale import DEFAULT_SCALE_CONFIGS, run_scale_benchmark
+
+
+def _config(text: str) -> tuple[int, int, int] | str:
+    if text == "none":
+        return text
+    try:
+        views, image, tex = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: write a configuration as VIEWSxIMAGExMAPS, e.g. 32x512x512") \
+            from None
+    return views, image, tex
+
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what",
-                    choices=["models", "approximations", "scaling", "reconstruction", "independent", "measured"])
+    ap.add_argument("what", choices=["models", "approximations", "scaling", "reconstruction", "independent", "measured",
+                                     "scale"])
     ap.add_argument("--datasets", nargs="+", default=sorted(glob.glob("tests/fixtures/mitsuba/*/")),
                     help="independent: dataset folders rendered by another renderer")
     ap.add_argument("--scene", choices=["default", "small"], default="default")
@@ -70,13 +90,24 @@ if __name__ == "__main__":
     ap.add_argument("--n", type=int, default=1 << 20, help="samples per evaluation")
     ap.add_argument("--device", default="cpu", help="models, independent: where the evaluations and fits run "
                     "(cpu, cuda, cuda:N or auto)")
+    ap.add_argument("--configs", nargs="+", type=_config, default=list(DEFAULT_SCALE_CONFIGS),
+                    help="scale: VIEWSxIMAGExMAPS configurations")
+    ap.add_argument("--devices", nargs="+", default=["cpu"], help="scale: devices to run each configuration on")
+    ap.add_argument("--work", default=None, help="scale: folder for the datasets and reconstructions (kept)")
+    ap.add_argument("--rows-json", default=None, help="scale: also write the rows as JSON")
+    ap.add_argument("--earlier", nargs="+", default=[], help="scale: JSON rows of earlier runs to show beside "
+                    "(e.g. from a GPU machine); with --configs none, the table is made from them alone")
     ap.add_argument("--compile", nargs="*", default=None,
                     help="models to also time under torch.compile (default: the common ones)")
     ap.add_argument("--out", default=None, help="markdown file to write results into")
-    ap.add_argument("--figure", default=None, help="approximations, reconstruction: the plot's PNG")
+    ap.add_argument("--figure", default=None, help="approximations, reconstruction, scale: the plot's PNG")
     ap.add_argument("--no-sweeps", action="store_true", help="reconstruction: skip the texture/material sweeps")
     args = ap.parse_args()
-    if args.what == "independent":
+    if args.what == "scale":
+        configs = [] if args.configs == ["none"] else args.configs
+        print(run_scale_benchmark(configs, args.devices, work=args.work, threads=args.threads, out=args.out,
+                                  figure=args.figure, rows_json=args.rows_json, earlier=args.earlier))
+    elif args.what == "independent":
         print(run_independent_benchmark(args.datasets, out=args.out, threads=args.threads, device=args.device))
     elif args.what == "models":
         print(run_models_benchmark(n=args.n, device=args.device, compile_names=args.compile, out=args.out))

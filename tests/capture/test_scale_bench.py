@@ -1,0 +1,32 @@
+"""The scale benchmark's arithmetic (capture.bench.scale): growth exponents and marginal memory from its rows, one
+table per machine, and its argument checks. The runs themselves are benchmarks (docs/benchmarks.md, "Scale")."""
+
+import pytest
+
+from capture.bench.scale import ScaleError, scale_run, scale_table
+
+
+def _row(machine, device, pixels, seconds, memory):
+    return {"machine": machine, "views": 8, "image": 256, "tex": 256, "device": device, "synth_s": 0.0,
+            "wall_s": seconds, "times": {"observe": 0.25 * seconds, "solve": 0.5 * seconds, "total": seconds},
+            "pixels": pixels, "rays": 4 * pixels, "peak_rss_bytes": memory, "cuda_peak_bytes": None,
+            "rmse": {"albedo": 0.01}}
+
+
+def test_linear_time_and_affine_memory_give_exponent_one_and_the_slope():
+    # time = 1e-5 s per pixel (exponent 1); memory = 500 MB fixed + 300 B per pixel (marginal 300)
+    rows = [_row("box A", "cpu", px, 1e-5 * px, 500e6 + 300 * px) for px in (1e5, 4e5, 1.6e6)]
+    rows.append(_row("box B", "cuda", 1e5, 3.0, 1e9))
+    text = scale_table(rows)
+    assert text.index("Machine: box A") < text.index("Machine: box B")
+    assert "`cpu`: time ∝ pixels^1.00, solve ∝ pixels^1.00" in text
+    assert "marginal memory 300 B per observed pixel" in text
+    assert "`cuda`" not in text          # one configuration: no exponent is fitted from a single point
+    assert text.count("| cpu | 8 × 256², 256² |") == 3
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, True, "8"])
+def test_bad_sizes_are_refused_before_any_work(bad, tmp_path):
+    with pytest.raises(ScaleError, match="positive integer"):
+        scale_run(bad, 64, 64, tmp_path)
+    assert not any(tmp_path.iterdir())
