@@ -61,6 +61,7 @@ from capture.bench import (
     run_scaling_benchmark,
 )
 from capture.bench.scale import DEFAULT_SCALE_CONFIGS, run_scale_benchmark
+from renderer.device import resolve_device
 
 
 def _config(text: str) -> tuple[int, int, int] | str:
@@ -103,6 +104,7 @@ if __name__ == "__main__":
     ap.add_argument("--figure", default=None, help="approximations, reconstruction, scale: the plot's PNG")
     ap.add_argument("--no-sweeps", action="store_true", help="reconstruction: skip the texture/material sweeps")
     args = ap.parse_args()
+    args.device = str(resolve_device(args.device))
     if args.what == "scale":
         configs = [] if args.configs == ["none"] else args.configs
         print(run_scale_benchmark(configs, args.devices, work=args.work, threads=args.threads, out=args.out,

@@ -25,7 +25,8 @@ def reconstruction_run(dataset, model: str = "ggx-lambert", solver: str = "fast"
     ``rmse_observable`` / ``rmse_determined`` (per map, fitted values; the last on the texels the photos determine
     at the true maps, :func:`capture.metrics.determined_at_truth`, empty when another model rendered the
     photos), ``observable_fraction`` (per map), ``fit`` (solver
-    info without long lists), ``skipped``, ``peak_rss_mib`` (process peak so far), ``threads``.
+    info without long lists), ``skipped``, ``peak_rss_mib`` (process peak so far), ``threads``. The fit runs on the
+    CPU unless ``device`` is among ``options`` (the CPU benchmark tables say so).
     """
     import tempfile
     from pathlib import Path
@@ -38,7 +39,8 @@ def reconstruction_run(dataset, model: str = "ggx-lambert", solver: str = "fast"
     try:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
-            rep = reconstruct(dataset, model=model, out_dir=Path(d) / "out", solver=solver, progress=False, **options)
+            rep = reconstruct(dataset, model=model, out_dir=Path(d) / "out", solver=solver, progress=False,
+                              **{"device": "cpu", **options})
             seconds = time.perf_counter() - t0
     finally:
         torch.set_num_threads(old)
