@@ -59,7 +59,7 @@ from materials.model import Model
 from renderer.gbuffer import footprint_extent, pixel_filter, render_footprint
 from renderer.shading import prepare
 
-from .observations import ObservationError, Observations, noise_residual, observe_views, pad_texels
+from .observations import ObservationError, Observations, TexelTaps, noise_residual, observe_views
 
 __all__ = ["PixelFootprints", "observe_footprints", "footprint_counts", "texture_footprints", "FOOTPRINT_SPACING",
            "FOOTPRINT_MAX", "SEAM_TEXELS"]
@@ -89,7 +89,7 @@ class PixelFootprints:
 
     Attributes:
         samples: :class:`Observations` of the sub-pixel samples (S of them; ``samples.radiance`` holds each
-            sample's pixel value, ``samples.bilinear_index/weight`` its texels).
+            sample's pixel value, ``samples.taps`` its texels).
         group: ``[S]`` int64 index of each sample's pixel among the R kept pixels.
         share: ``[S]`` the sample's share of its pixel (``1/k²``; a pixel's shares sum to 1).
         radiance: ``[R, 3]`` measured linear radiance of each kept pixel.
@@ -286,7 +286,7 @@ def footprint_counts(gbuffer, map_size: tuple[int, int],
 
 
 def texture_footprints(mesh, camera, g, k: Tensor, kt: Tensor, map_size: tuple[int, int],
-                       psf_sigma: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
+                       psf_sigma: float = 0.0) -> tuple[Tensor, TexelTaps]:
     """The texels each ray of a footprint G-buffer stands for (module docstring, step 3).
 
     ``g`` holds the rays of :func:`renderer.gbuffer.render_footprint`; ``k [N]``, ``kt [N]`` are the ray count and
@@ -295,9 +295,9 @@ def texture_footprints(mesh, camera, g, k: Tensor, kt: Tensor, map_size: tuple[i
     face the ray hit (:func:`renderer.gbuffer.face_uv`) and read bilinearly; over the pixel they form the
     ``(k·m)²`` midpoint grid of the filter's square, weighted by the pixel filter (uniform for the box).
 
-    Returns ``(share [N], index [N, K], weight [N, K])``: the ray's share of its pixel (the filter weights of its
-    sub-samples, summing to 1 over the pixel) and its distinct texels with weights summing to 1 (``K`` the most any
-    ray reads; rows with fewer are padded with their first texel at weight 0)."""
+    Returns ``(share [N], taps)``: the ray's share of its pixel (the filter weights of its sub-samples, summing to 1
+    over the pixel) and its distinct texels with weights summing to 1 (:class:`capture.observations.TexelTaps`, one
+    row per ray)."""
     from renderer.gbuffer import face_uv
     from renderer.texture import bilinear_weights
 
@@ -336,12 +336,12 @@ def texture_footprints(mesh, camera, g, k: Tensor, kt: Tensor, map_size: tuple[i
         share[sel] = s_ray
         wt = (bw * (wsub / s_ray.clamp_min(1e-300)[:, None])[..., None]).reshape(len(sel), -1)
         rows.append((sel, *_distinct(bi.reshape(len(sel), -1), wt)))
-    K = max((r[1].shape[1] for r in rows), default=1)
-    index = torch.zeros(N, K, dtype=torch.long)
-    weight = torch.zeros(N, K, dtype=torch.float64)
-    for sel, bi, wt in rows:
-        index[sel], weight[sel] = pad_texels(bi, wt, K)
-    return share, index, weight
+    if not rows:
+        return share, TexelTaps.from_triplets(torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long),
+                                              torch.zeros(0, dtype=torch.float64), N)
+    return share, TexelTaps.from_triplets(torch.cat([sel.repeat_interleave(bi.shape[1]) for sel, bi, _ in rows]),
+                                          torch.cat([bi.reshape(-1) for _, bi, _ in rows]),
+                                          torch.cat([wt.reshape(-1) for _, _, wt in rows]), N)
 
 
 def _sub_samples(k: Tensor, kt: Tensor) -> Tensor:
@@ -409,10 +409,9 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         k_of = torch.zeros(HW, dtype=torch.long)
         kt_of = torch.zeros(HW, dtype=torch.long)
         k_of[pixels], kt_of[pixels] = k, kt
-        share, t_idx, t_w = texture_footprints(mesh, cameras[vi], g, k_of[g.pixel], kt_of[g.pixel], map_size,
-                                               psf_sigma)
+        share, taps = texture_footprints(mesh, cameras[vi], g, k_of[g.pixel], kt_of[g.pixel], map_size, psf_sigma)
         g.weight = share.to(g.weight.dtype)
-        texels.append((t_idx, t_w))
+        texels.append(taps)
         sub += int(((k_of * _sub_samples(k_of, kt_of))[whole] ** 2).sum())
         preps.append(prepare(g, mesh, lights_per_view[vi], shadows=shadows))
         kk = torch.zeros(HW, dtype=torch.long)

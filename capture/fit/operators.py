@@ -55,30 +55,34 @@ def sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True)
 
 
 class CsrPattern(NamedTuple):
-    """The structure of a sparse CSR matrix built from triplets: the stable sort of the rows (``order``), the row
-    pointers and the sorted columns. Matrices with the same triplet positions and new values reuse it
-    (:meth:`matrix`): one gather instead of a sort."""
+    """The structure of a sparse CSR matrix built from triplets: the stable sort of the rows (``order``; None when
+    they come in order), the row pointers and the sorted columns, in 32-bit integers wherever they fit. Matrices with
+    the same triplet positions and new values reuse it (:meth:`matrix`): one gather instead of a sort, and the CSR
+    shares the pattern's index arrays. 32 bits halve what the kept patterns hold: the pixel operator's two patterns
+    took 288 bytes per (pixel, texel) entry of GGX + Lambert in 64 bits (9 non-zeros each)."""
 
-    order: Tensor
+    order: Tensor | None
     crow: Tensor
     col: Tensor
     shape: tuple[int, int]
 
     @classmethod
     def of(cls, rows: Tensor, cols: Tensor, shape: tuple[int, int]) -> CsrPattern:
+        small = max(shape) < 2 ** 31 and rows.numel() < 2 ** 31
+        itype = torch.int32 if small else torch.long
         # rows already in order (a sampling operator's, the entries' pixels) need no sort: one pass to check
         if rows.numel() < 2 or bool((rows[1:] >= rows[:-1]).all()):
-            order = torch.arange(rows.numel(), device=rows.device)
+            order = None
         else:
             # 32-bit keys sort 1.6× faster (0.30 against 0.48 s for 13 M keys, 2 threads), same stable order
-            order = torch.argsort(rows.to(torch.int32) if shape[0] < 2 ** 31 else rows, stable=True)
+            order = torch.argsort(rows.to(torch.int32) if shape[0] < 2 ** 31 else rows, stable=True).to(itype)
         crow = torch.zeros(shape[0] + 1, dtype=torch.long, device=rows.device)
         crow[1:] = torch.bincount(rows, minlength=shape[0]).cumsum(0)
-        return cls(order, crow, cols[order], shape)
+        return cls(order, crow.to(itype), (cols if order is None else cols[order]).to(itype), shape)
 
     def matrix(self, vals: Tensor) -> Tensor:
         """The CSR matrix with ``vals`` at the triplet positions (in the order the pattern was built from)."""
-        return csr_matrix(self.crow, self.col, vals[self.order], self.shape)
+        return csr_matrix(self.crow, self.col, vals if self.order is None else vals[self.order], self.shape)
 
 
 def csr_matrix(crow: Tensor, col: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
@@ -113,16 +117,13 @@ class PixelOperator:
 
     def __init__(self, fp, T: int):
         so = fp.samples
-        if so.bilinear_index is None:
-            raise SolverError("pixel footprints need bilinear sample weights (observe_footprints builds them)")
+        if so.taps is None:
+            raise SolverError("pixel footprints need each sample's texture footprint (observe_footprints builds it)")
         self.fp, self.T = fp, T
         self.R, S = fp.n_pixels, so.n_samples
-        idx, bw = so.bilinear_index, so.bilinear_weight.to(ACC)
-        # the footprints' (sample, texel, weight) triplets without the rows' padding (weight 0; a ray reads 2–28
-        # texels, padded to the most any reads: 2.8 M of 14.4 M on the 256² Mitsuba torus), sample-major
-        live = bw != 0
-        t_s = torch.arange(S, device=idx.device)[:, None].expand_as(idx)[live]
-        t_idx, t_w = idx[live], bw[live]
+        # the footprints' (sample, texel, weight) triplets, sample-major
+        t_s, t_idx, t_w = so.taps.rows(), so.taps.index.long(), so.taps.weight.to(ACC)
+        dev = t_idx.device
         coef = t_w * fp.share.to(ACC)[t_s]
         # one stable sort of the (pixel, texel) keys gives the entries (its runs) and the samples → entries
         # operator (its order), instead of a unique and a second sort
@@ -131,18 +132,18 @@ class PixelOperator:
         self.e_pix, self.e_tex = ekey // T, ekey % T
         E = int(ekey.numel())
         self.E = E
-        ar = torch.arange(E, device=idx.device)
-        ones = torch.ones(E, dtype=ACC, device=idx.device)
+        ar = torch.arange(E, device=dev)
+        ones = torch.ones(E, dtype=ACC, device=dev)
         self.pix_op = _csr(self.e_pix, ar, ones, (self.R, E))                        # entries → pixels
         self.tex_op = _csr(self.e_tex, ar, ones, (T, E))                             # entries → texels
         # samples → entries: each sample's texels (its texture footprint) and weights, repeated pairs summed
-        crow = torch.zeros(E + 1, dtype=torch.long, device=idx.device)
+        crow = torch.zeros(E + 1, dtype=torch.long, device=dev)
         crow[1:] = counts.cumsum(0)
         self.corner_op = csr_matrix(crow, t_s[perm], coef[perm], (E, S))
         self.gather_op = _csr(t_s, t_idx, t_w, (S, T))                               # texels → samples
-        self.group_op = _csr(fp.group, torch.arange(S, device=idx.device), fp.share.to(ACC), (self.R, S))
+        self.group_op = _csr(fp.group, torch.arange(S, device=dev), fp.share.to(ACC), (self.R, S))
         # each entry's share of its pixel (Σ over a pixel's entries = 1): how much of the pixel the texel is
-        self.e_share = torch.zeros(E, dtype=ACC, device=idx.device).index_add_(0, e_sorted, coef[perm])
+        self.e_share = torch.zeros(E, dtype=ACC, device=dev).index_add_(0, e_sorted, coef[perm])
         self.y = fp.radiance.to(ACC)
         self._pattern = None            # the sparsity pattern of the Jacobian's blocks and its sort orders
         self._affine = None             # (canon, pred, J) once the model is found affine in its parameters

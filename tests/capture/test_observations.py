@@ -132,3 +132,34 @@ def test_noise_floor_by_hand():
     rho = torch.where(sig <= d, sig.square(), 2 * d * sig - d * d)
     assert math.isclose(noise_floor(obs, NOISE, None, "huber", d), float((rho.sum(-1) * w).sum() / (3 * w.sum())),
                         rel_tol=1e-12)
+
+
+# -- TexelTaps: ragged texture footprints -----------------------------------------------------------------------------
+
+def test_texel_taps_read_select_cat_and_move_like_the_padded_rows():
+    """Ragged taps built from padded rows (zero weights dropped) read a map as the dense weighted gather does; a
+    selection keeps its rows' taps in order, a concatenation appends rows, and ``to`` casts the weights only."""
+    from capture.observations import TexelTaps
+
+    gen = torch.Generator().manual_seed(3)
+    N, K, T = 50, 7, 40
+    idx = torch.randint(0, T, (N, K), generator=gen)
+    w = torch.rand(N, K, generator=gen, dtype=torch.float64) * (torch.rand(N, K, generator=gen) < 0.5)
+    w[:, 0] += 0.1                                               # every row reads at least one texel
+    taps = TexelTaps.from_padded(idx, w)
+    assert taps.n_rows == N and int(taps.start[-1]) == int((w != 0).sum()) and taps.index.dtype == torch.int32
+    assert bool((taps.weight > 0).all()) and torch.equal(taps.counts(), (w != 0).sum(1))
+    flat = torch.rand(T, 3, generator=gen, dtype=torch.float64)
+    dense = (flat[idx] * w[..., None]).sum(1)
+    assert torch.allclose(taps.read(flat), dense, rtol=0, atol=1e-12)
+    keep = torch.rand(N, generator=gen) < 0.4
+    assert torch.allclose(taps.select(keep).read(flat), dense[keep], rtol=0, atol=1e-12)
+    both = TexelTaps.cat([taps.select(keep), taps.select(~keep)])
+    assert torch.allclose(both.read(flat), torch.cat([dense[keep], dense[~keep]]), rtol=0, atol=1e-12)
+    f32 = taps.to(dtype=torch.float32)
+    assert f32.weight.dtype == torch.float32 and f32.index.dtype == torch.int32 and torch.equal(f32.start, taps.start)
+    # triplets in any order: each row's taps keep the order given
+    perm = torch.randperm(N * K, generator=gen)
+    rows = torch.arange(N).repeat_interleave(K)
+    shuffled = TexelTaps.from_triplets(rows[perm], idx.reshape(-1)[perm], w.reshape(-1)[perm], N)
+    assert torch.allclose(shuffled.read(flat), dense, rtol=0, atol=1e-12)
