@@ -82,7 +82,9 @@ class CsrPattern(NamedTuple):
 
     def matrix(self, vals: Tensor) -> Tensor:
         """The CSR matrix with ``vals`` at the triplet positions (in the order the pattern was built from)."""
-        return csr_matrix(self.crow, self.col, vals if self.order is None else vals[self.order], self.shape)
+        # index_select with 32-bit indices: 139 against 278 ms for x[order] of 9 M values (2 threads)
+        return csr_matrix(self.crow, self.col, vals if self.order is None else torch.index_select(vals, 0, self.order),
+                          self.shape)
 
 
 def csr_matrix(crow: Tensor, col: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
