@@ -336,12 +336,7 @@ def texture_footprints(mesh, camera, g, k: Tensor, kt: Tensor, map_size: tuple[i
         share[sel] = s_ray
         wt = (bw * (wsub / s_ray.clamp_min(1e-300)[:, None])[..., None]).reshape(len(sel), -1)
         rows.append((sel, *_distinct(bi.reshape(len(sel), -1), wt)))
-    if not rows:
-        return share, TexelTaps.from_triplets(torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long),
-                                              torch.zeros(0, dtype=torch.float64), N)
-    return share, TexelTaps.from_triplets(torch.cat([sel.repeat_interleave(bi.shape[1]) for sel, bi, _ in rows]),
-                                          torch.cat([bi.reshape(-1) for _, bi, _ in rows]),
-                                          torch.cat([wt.reshape(-1) for _, _, wt in rows]), N)
+    return share, TexelTaps.from_blocks(rows, N)
 
 
 def _sub_samples(k: Tensor, kt: Tensor) -> Tensor:

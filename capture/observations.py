@@ -66,24 +66,32 @@ class TexelTaps:
     weight: Tensor
 
     @classmethod
-    def from_triplets(cls, row: Tensor, index: Tensor, weight: Tensor, n_rows: int) -> TexelTaps:
-        """Taps from (row, texel, weight) triplets in any order; zero weights dropped, each row's taps in the order
-        given (stable)."""
-        live = weight != 0
-        row, index, weight = row[live], index[live], weight[live]
-        order = torch.sort(row, stable=True)[1] if len(row) and bool((row[1:] < row[:-1]).any()) else None
-        if order is not None:
-            row, index, weight = row[order], index[order], weight[order]
-        start = torch.zeros(n_rows + 1, dtype=torch.long, device=row.device)
-        start[1:] = torch.bincount(row, minlength=n_rows).cumsum(0)
-        return cls(start, index.to(torch.int32), weight)
+    def from_blocks(cls, blocks: Sequence[tuple[Tensor, Tensor, Tensor]], n_rows: int) -> TexelTaps:
+        """Taps from blocks of rows ``(rows [n], index [n, K], weight [n, K])`` (each block its own width; every row
+        in one block), zero weights dropped, each row's taps in column order. Placed by offsets, without a sort."""
+        dev = blocks[0][0].device if blocks else torch.device("cpu")
+        counts = torch.zeros(n_rows, dtype=torch.long, device=dev)
+        lives = []
+        for rows, _, weight in blocks:
+            live = weight != 0
+            counts[rows] = live.sum(1)
+            lives.append(live)
+        start = torch.zeros(n_rows + 1, dtype=torch.long, device=dev)
+        start[1:] = counts.cumsum(0)
+        nnz = int(start[-1])
+        wdt = blocks[0][2].dtype if blocks else torch.float64
+        index = torch.zeros(nnz, dtype=torch.int32, device=dev)
+        weight = torch.zeros(nnz, dtype=wdt, device=dev)
+        for (rows, idx, w), live in zip(blocks, lives, strict=True):
+            dest = (start[rows][:, None] + live.long().cumsum(1) - 1)[live]
+            index[dest], weight[dest] = idx[live].to(torch.int32), w[live].to(wdt)
+        return cls(start, index, weight)
 
     @classmethod
     def from_padded(cls, index: Tensor, weight: Tensor) -> TexelTaps:
         """Taps from rows of equal width ``index [N, K]``, ``weight [N, K]`` (zero weights dropped)."""
-        N, K = index.shape
-        row = torch.arange(N, device=index.device).repeat_interleave(K)
-        return cls.from_triplets(row, index.reshape(-1), weight.reshape(-1), N)
+        N = index.shape[0]
+        return cls.from_blocks([(torch.arange(N, device=index.device), index, weight)], N)
 
     @property
     def n_rows(self) -> int:

@@ -158,8 +158,12 @@ def test_texel_taps_read_select_cat_and_move_like_the_padded_rows():
     assert torch.allclose(both.read(flat), torch.cat([dense[keep], dense[~keep]]), rtol=0, atol=1e-12)
     f32 = taps.to(dtype=torch.float32)
     assert f32.weight.dtype == torch.float32 and f32.index.dtype == torch.int32 and torch.equal(f32.start, taps.start)
-    # triplets in any order: each row's taps keep the order given
-    perm = torch.randperm(N * K, generator=gen)
-    rows = torch.arange(N).repeat_interleave(K)
-    shuffled = TexelTaps.from_triplets(rows[perm], idx.reshape(-1)[perm], w.reshape(-1)[perm], N)
-    assert torch.allclose(shuffled.read(flat), dense, rtol=0, atol=1e-12)
+    # blocks of rows in any order and of their own widths: the same taps, each row's in column order
+    perm = torch.randperm(N, generator=gen)
+    a, b = perm[:20], perm[20:]
+    blocks = TexelTaps.from_blocks([(a, idx[a], w[a]), (b, idx[b, :5], w[b, :5])], N)
+    w5 = w.clone()
+    w5[b, 5:] = 0
+    assert torch.allclose(blocks.read(flat), (flat[idx] * w5[..., None]).sum(1), rtol=0, atol=1e-12)
+    row0 = int(a[0])
+    assert torch.equal(blocks.index[blocks.start[row0]:blocks.start[row0 + 1]].long(), idx[row0][w[row0] != 0])
