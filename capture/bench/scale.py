@@ -102,16 +102,27 @@ def _slope(xs: Sequence[float], ys: Sequence[float]) -> float:
 
 
 def _summary_lines(rows: list[dict]) -> list[str]:
+    """Per device: growth against observed pixels over the rows whose maps match their images (map size = image
+    size: the pixel sweep), and against texels over rows of one views × image with several map sizes."""
     lines = []
     for dev in dict.fromkeys(r["device"] for r in rows):
-        rs = [r for r in rows if r["device"] == dev]
-        if len({r["pixels"] for r in rs}) < 2:
-            continue
-        px = [r["pixels"] for r in rs]
-        lines.append(f"- `{dev}`: time ∝ pixels^{growth_exponent(px, [r['times']['total'] for r in rs]):.2f}, "
-                     f"solve ∝ pixels^{growth_exponent(px, [r['times'].get('solve', 0.0) for r in rs]):.2f}, "
-                     f"peak memory ∝ pixels^{growth_exponent(px, [r['peak_rss_bytes'] for r in rs]):.2f}; "
-                     f"marginal memory {_slope(px, [r['peak_rss_bytes'] for r in rs]):.0f} B per observed pixel")
+        rs = [r for r in rows if r["device"] == dev and r["tex"] == r["image"]]
+        if len({r["pixels"] for r in rs}) >= 2:
+            px = [r["pixels"] for r in rs]
+            lines.append(f"- `{dev}`: time ∝ pixels^{growth_exponent(px, [r['times']['total'] for r in rs]):.2f}, "
+                         f"solve ∝ pixels^{growth_exponent(px, [r['times'].get('solve', 0.0) for r in rs]):.2f}, "
+                         f"peak memory ∝ pixels^{growth_exponent(px, [r['peak_rss_bytes'] for r in rs]):.2f}; "
+                         f"marginal memory {_slope(px, [r['peak_rss_bytes'] for r in rs]):.0f} B per observed pixel "
+                         f"(maps the size of the images)")
+        for views, image in dict.fromkeys((r["views"], r["image"]) for r in rows if r["device"] == dev):
+            ts = sorted((r for r in rows if r["device"] == dev and (r["views"], r["image"]) == (views, image)),
+                        key=lambda r: r["tex"])
+            if len({r["tex"] for r in ts}) < 2:
+                continue
+            tex = [r["tex"] ** 2 for r in ts]
+            lines.append(f"- `{dev}`, {views} × {image}², maps {ts[0]['tex']}² … {ts[-1]['tex']}²: time ∝ "
+                         f"texels^{growth_exponent(tex, [r['times']['total'] for r in ts]):.2f}, peak memory ∝ "
+                         f"texels^{growth_exponent(tex, [r['peak_rss_bytes'] for r in ts]):.2f}")
     return lines
 
 
@@ -142,7 +153,9 @@ def _machine_table(rows: list[dict]) -> list[str]:
 
 
 def scale_figure(rows: list[dict], path) -> None:
-    """Time and peak memory against observed pixels (log–log), one line per device."""
+    """Time and peak memory against observed pixels (log–log), one line per machine and device, over the rows whose
+    maps are the size of their images (a texture sweep has one pixel count: its exponent is in the table)."""
+    rows = [r for r in rows if r["tex"] == r["image"]]
     import matplotlib
 
     matplotlib.use("Agg")

@@ -25,6 +25,16 @@ def test_linear_time_and_affine_memory_give_exponent_one_and_the_slope():
     assert text.count("| cpu | 8 × 256², 256² |") == 3
 
 
+def test_a_texture_sweep_gets_its_own_exponent_and_stays_out_of_the_pixel_fit():
+    # same pixels, maps 256² → 1024² (16× the texels): time 4× (texels^0.5), memory 2× (texels^0.25)
+    rows = [_row("box", "cpu", 1e5, 10.0, 1e9)]
+    for tex, t, m in ((512, 20.0, 1.414e9), (1024, 40.0, 2e9)):
+        rows.append({**_row("box", "cpu", 1e5, t, m), "tex": tex})
+    text = scale_table(rows)
+    assert "`cpu`, 8 × 256², maps 256² … 1024²: time ∝ texels^0.50, peak memory ∝ texels^0.25" in text
+    assert "∝ pixels^" not in text                   # one pixel count among the rows whose maps match the images
+
+
 @pytest.mark.parametrize("bad", [0, -1, 2.5, True, "8"])
 def test_bad_sizes_are_refused_before_any_work(bad, tmp_path):
     with pytest.raises(ScaleError, match="positive integer"):
