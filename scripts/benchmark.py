@@ -52,15 +52,16 @@ import glob
 import torch
 
 from capture.bench import (
+    DEFAULT_SCALE_CONFIGS,
     benchmark_table,
     capture_benchmark,
     run_approximation_benchmark,
     run_independent_benchmark,
     run_models_benchmark,
     run_reconstruction_benchmark,
+    run_scale_benchmark,
     run_scaling_benchmark,
 )
-from capture.bench.scale import DEFAULT_SCALE_CONFIGS, run_scale_benchmark
 from renderer.device import resolve_device
 
 
