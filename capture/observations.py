@@ -87,12 +87,6 @@ class TexelTaps:
             index[dest], weight[dest] = idx[live].to(torch.int32), w[live].to(wdt)
         return cls(start, index, weight)
 
-    @classmethod
-    def from_padded(cls, index: Tensor, weight: Tensor) -> TexelTaps:
-        """Taps from rows of equal width ``index [N, K]``, ``weight [N, K]`` (zero weights dropped)."""
-        N = index.shape[0]
-        return cls.from_blocks([(torch.arange(N, device=index.device), index, weight)], N)
-
     @property
     def n_rows(self) -> int:
         return int(self.start.numel()) - 1

@@ -156,9 +156,9 @@ class FitResult:
         """The result with every map on ``device`` (the solver's numbers — history, info — as they are)."""
         def mv(maps: dict) -> dict:
             return {k: v.to(device) for k, v in maps.items()}
-        return replace(self, maps=mv(self.maps), observed=self.observed.to(device),
-                                   unobservable=mv(self.unobservable), filled=mv(self.filled),
-                                   confidence=mv(self.confidence), sensitivity=mv(self.sensitivity), raw=mv(self.raw))
+        return replace(self, maps=mv(self.maps), observed=self.observed.to(device), unobservable=mv(self.unobservable),
+                       filled=mv(self.filled), confidence=mv(self.confidence), sensitivity=mv(self.sensitivity),
+                       raw=mv(self.raw))
 
 
 def param_groups(layout: Layout) -> list[list[int]]:

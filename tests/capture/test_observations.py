@@ -137,8 +137,9 @@ def test_noise_floor_by_hand():
 # -- TexelTaps: ragged texture footprints -----------------------------------------------------------------------------
 
 def test_texel_taps_read_select_cat_and_move_like_the_padded_rows():
-    """Ragged taps built from padded rows (zero weights dropped) read a map as the dense weighted gather does; a
-    selection keeps its rows' taps in order, a concatenation appends rows, and ``to`` casts the weights only."""
+    """Ragged taps built from one block of padded rows (zero weights dropped) read a map as the dense weighted gather
+    does; a selection keeps its rows' taps in order, a concatenation appends rows, and ``to`` casts the weights
+    only."""
     from capture.observations import TexelTaps
 
     gen = torch.Generator().manual_seed(3)
@@ -146,7 +147,7 @@ def test_texel_taps_read_select_cat_and_move_like_the_padded_rows():
     idx = torch.randint(0, T, (N, K), generator=gen)
     w = torch.rand(N, K, generator=gen, dtype=torch.float64) * (torch.rand(N, K, generator=gen) < 0.5)
     w[:, 0] += 0.1                                               # every row reads at least one texel
-    taps = TexelTaps.from_padded(idx, w)
+    taps = TexelTaps.from_blocks([(torch.arange(N), idx, w)], N)                # one block of padded rows
     assert taps.n_rows == N and int(taps.start[-1]) == int((w != 0).sum()) and taps.index.dtype == torch.int32
     assert bool((taps.weight > 0).all()) and torch.equal(taps.counts(), (w != 0).sum(1))
     flat = torch.rand(T, 3, generator=gen, dtype=torch.float64)
