@@ -28,8 +28,9 @@ from .noise import NOISE, check_noise, irls_weights, moderated_misfit, noise_sig
 from .operators import pixel_operator, sampling_operator
 from .texel import jacobian
 
-__all__ = ["OBSERVABLE_STD", "RESOLVED_SHARE", "ANCHOR_MIN_FRACTION", "ANCHOR_LOOSENING", "std_threshold",
-           "pull_push", "posterior_std", "finalize", "determined", "find_anchors", "anchors_at"]
+__all__ = ["OBSERVABLE_STD", "RESOLVED_SHARE", "ANCHOR_MIN_FRACTION", "ANCHOR_LOOSENING", "SEED_BLOCK",
+           "SEED_SPREAD", "std_threshold", "pull_push", "posterior_std", "finalize", "determined", "find_anchors",
+           "anchors_at", "tile_seeds"]
 
 
 #: Default thresholds on the marginal posterior standard deviation (canonical units) below which a
@@ -246,3 +247,56 @@ def anchors_at(layout: Layout, std: Tensor, observed: Tensor, names: Sequence[st
     """``[T]`` bool: the observed texels that determine every parameter in ``names`` at ``factor`` × the thresholds."""
     good = determined(layout, std, observed, observable_std, factor)
     return torch.stack([good[n] for n in names]).all(0)
+
+
+#: Side in texels of the tiles of :func:`tile_seeds`.
+SEED_BLOCK = 4
+#: Largest spread of a tile's per-texel estimates (1.4826 × their median absolute deviation), in units of their median
+#: posterior std, for :func:`tile_seeds` to count them as one material seen through noise: twice what noise alone
+#: gives. Estimates that scatter more than their posterior says are not trusted (a misfit, a model the texels do not
+#: follow); a tile across a border seeds the material most of its texels have (median and MAD ignore the rest).
+SEED_SPREAD = 2.0
+
+
+def tile_seeds(layout: Layout, canon: Tensor, std: Tensor, observed: Tensor, anchors: Tensor, names: Sequence[str],
+               map_size: tuple[int, int], observable_std=None, block: int = SEED_BLOCK) -> Tensor:
+    """Material seeds where no texel is an anchor but a tile of texels agrees: ``[N, C]`` canonical values of the
+    columns of ``names`` (in that order), one per tile of the ``map_size = (H, W)`` grid that qualifies.
+
+    A rough material's lobe, seen off its peak, leaves each texel's f0 and roughness too uncertain to be an anchor
+    (:func:`find_anchors`), while many texels of it, estimated independently, scatter around the truth. For each
+    ``block × block`` tile of observed non-anchor texels (at least half of it) the median of their estimates
+    (``canon [T, P]``) is a seed when it is determined — its standard error, 1.2533 × the median posterior std
+    (``std [T, P]``) / √n, below the parameter's observability threshold in every column — and the texels agree —
+    their spread (1.4826 × MAD) at most :data:`SEED_SPREAD` × that median std. The seeds join the anchors as points
+    of the reflectance sharing's clustering only (:func:`capture.fit.sharing.share_materials` ``seeds``); no texel
+    keeps its own fit because of them. Measured (docs/log.md, "tile seeds"): on the 256² Mitsuba sphere 191 seeds
+    gave its rough green dielectric (2 anchors in 3 469 texels) a material of its own, visible-highlight albedo / f0
+    / α 0.0097 / 0.0174 / 0.132 → 0.0059 / 0.0091 / 0.016."""
+    H, W = map_size
+    cols = [c for n in names for c in layout.cols(n)]
+    spec = {s_.name: s_ for s_ in layout.specs}
+    thr = torch.tensor([std_threshold(spec[n], observable_std) for n in names for _ in range(spec[n].channels)],
+                       dtype=canon.dtype, device=canon.device)
+    if not cols:
+        return canon.new_zeros(0, 0)
+    b = block
+    ii = torch.arange(H, device=canon.device)[:, None]
+    jj = torch.arange(W, device=canon.device)[None, :]
+    tile = ((ii // b) * ((W + b - 1) // b) + jj // b).reshape(-1)
+    slot = ((ii % b) * b + jj % b).reshape(-1)
+    n_tiles = int(tile.max()) + 1
+    x, sd = canon[:, cols], std[:, cols]
+    use = (observed.reshape(-1).bool() & ~anchors.reshape(-1) & torch.isfinite(sd).all(-1)
+           & torch.isfinite(x).all(-1))
+    xs = torch.full((n_tiles, b * b, len(cols)), float("nan"), dtype=canon.dtype, device=canon.device)
+    ss = xs.clone()
+    xs[tile[use], slot[use]] = x[use]
+    ss[tile[use], slot[use]] = sd[use]
+    n = (~torch.isnan(xs[..., 0])).sum(1)
+    med = xs.nanmedian(1).values
+    spread = 1.4826 * (xs - med[:, None]).abs().nanmedian(1).values
+    sigma = ss.nanmedian(1).values
+    se = 1.2533 * sigma / n.clamp_min(1).sqrt()[:, None]
+    ok = (2 * n >= b * b) & (se < thr).all(-1) & (spread <= SEED_SPREAD * sigma).all(-1)
+    return med[ok]

@@ -378,7 +378,7 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
                     cap: float | None = 15.0, misfit: bool = True, albedo_prior: float = 1.0, prior_cap: float = 15.0,
                     min_evidence: float = MIN_EVIDENCE, noise: tuple[float, float] = (0.01, 0.1),
                     pool_block: int = 0, pool_evidence: float = 100.0, pool_candidates: int = 3,
-                    seed: int = 0) -> tuple[Tensor, dict]:
+                    seed: int = 0, seeds: Tensor | None = None) -> tuple[Tensor, dict]:
     """Replace the shared parameters of every observed texel by those of one of a few materials.
 
     Args:
@@ -412,6 +412,9 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
             0.1089 → 0.0093 / 0.0119 / 0.0481, shot noise 0.0245 / 0.1381 / 0.1589 → 0.0244 / 0.1035 / 0.1524,
             but the default scene 0.0062 / 0.0126 / 0.0510 → 0.0082 / 0.0294 / 0.0617 — hence off by default.
         seed: seed of the k-means++ draw.
+        seeds: ``[N, Ps]`` canonical values of the shared parameters (layout order) clustered with the anchors'
+            (:func:`capture.fit.observability.tile_seeds`: tiles whose texels agree on a material none of them
+            determines alone); None = the anchors only.
 
     Returns:
         ``(theta [T, P], info)``: θ with the shared parameters of the assigned material and the
@@ -441,7 +444,8 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     thr = torch.tensor([std_threshold(s) for s in shared for _ in range(s.channels)], dtype=ACC, device=dev)
     feats = layout.canonical(theta)[anchors][:, scols] / thr
     gen = torch.Generator().manual_seed(seed)
-    centres = kmeans_pp(feats, candidates, gen) * thr                                  # canonical [K, Ps]
+    points = feats if seeds is None or seeds.shape[0] == 0 else torch.cat([feats, seeds.to(feats) / thr])
+    centres = kmeans_pp(points, candidates, gen) * thr                                 # canonical [K, Ps]
     ctx = _Context(model, layout, _chi2_observations(obs, noise), shared, per_texel, sep, scols)
     st = _Round(theta=theta, mat=_as_materials(ctx, theta, centres),
                 kmeans_label=torch.cdist(feats, centres / thr).argmin(1),

@@ -464,6 +464,63 @@ def test_pooled_materials_recover_a_tile_lobe_that_no_single_texel_determines():
     assert pooled_materials(lam, Layout.of(lam), chi, part) is None
 
 
+def test_tile_seeds_take_the_median_of_tiles_whose_texels_agree_within_their_noise():
+    # 8 × 8 texels, four 4 × 4 tiles, no anchor; thresholds t (f0 0.01 per channel, roughness 0.02). Tile 0: every
+    # texel's estimate within ±σ of the truth, σ = 2t (no texel an anchor), lower median at the truth; standard error
+    # 1.2533 · 2t / 4 = 0.63 t < t, spread 1.4826 · 0.5 σ = 0.74 σ ≤ 2 σ → one seed, the truth. Tile 1: same but
+    # σ = 4t (standard error 1.25 t). Tile 2: estimates ±3σ (spread 2.2 σ). Tile 3: 7 of 16 texels observed.
+    from capture.fit.observability import SEED_SPREAD, std_threshold, tile_seeds
+
+    model = _ggx_lambert()
+    layout = Layout.of(model)
+    names = ["f0", "roughness"]
+    thr = torch.tensor([std_threshold(s) for s in layout.specs if s.name in names for _ in range(s.channels)],
+                       dtype=torch.float64)
+    cols = [c for n in names for c in layout.cols(n)]
+    truth = torch.tensor([0.04, 0.05, 0.06, 0.6], dtype=torch.float64)
+    steps = torch.tensor([-1, -1, -1, -1, -0.5, -0.5, -0.5, 0, 0, 0.5, 0.5, 0.5, 1, 1, 1, 1], dtype=torch.float64)
+    canon = torch.zeros(64, layout.P, dtype=torch.float64)
+    std = torch.zeros(64, layout.P, dtype=torch.float64)
+    observed = torch.ones(64, dtype=torch.bool)
+    tile = (torch.arange(8)[:, None] // 4 * 2 + torch.arange(8)[None, :] // 4).reshape(-1)
+    for t, (sigma, scale) in enumerate([(2.0, 1.0), (4.0, 1.0), (2.0, 3.0), (2.0, 1.0)]):
+        idx = torch.nonzero(tile == t).squeeze(-1)
+        canon[idx[:, None], torch.tensor(cols)] = truth + scale * sigma * steps[:, None] * thr
+        std[idx[:, None], torch.tensor(cols)] = sigma * thr
+    observed[torch.nonzero(tile == 3).squeeze(-1)[7:]] = False
+    assert 1.4826 * 0.5 * 3.0 > SEED_SPREAD           # tile 2's estimates scatter more than their std allows
+    seeds = tile_seeds(layout, canon, std, observed, torch.zeros(64, dtype=torch.bool), names, (8, 8))
+    torch.testing.assert_close(seeds, truth[None], rtol=0, atol=1e-12)
+    # texels that are anchors already are not pooled again: with tile 0's anchored, no seed is left
+    anchors = tile == 0
+    assert tile_seeds(layout, canon, std, observed, anchors, names, (8, 8)).shape == (0, 4)
+
+
+def test_tile_seeds_give_the_sharing_a_material_whose_texels_are_no_anchors():
+    # the two-material scene with the dielectric half's anchors removed (as a rough material under a flash gives
+    # none): the one material left, the metal, serves both halves without seeds (measured: interior f0 0.46 off);
+    # the tiles of the dielectric's per-texel fits, which agree, seed its material and the interior recovers
+    # (f0, roughness within 0.005)
+    from capture.fit.observability import tile_seeds
+
+    model, obs, layout, theta, anchors = _two_material_fit()
+    right = (torch.arange(256) % 16) >= 8
+    cut = anchors & ~right
+    interior = right & ((torch.arange(256) % 16) >= 12)
+    fit = solve_fast(model, obs, share=False)
+    std = torch.cat([fit.confidence[s.name].reshape(256, -1).double() for s in layout.specs], -1)   # canonical
+    seeds = tile_seeds(layout, layout.canonical(theta), std, fit.observed.reshape(-1), cut, ["f0", "roughness"],
+                       (16, 16))
+    assert seeds.shape[0] >= 4
+    without, _ = share_materials(model, obs, layout, theta, cut, candidates=2)
+    out, info = share_materials(model, obs, layout, theta, cut, candidates=2, seeds=seeds)
+    assert float((layout.unpack(without)["f0"][interior] - 0.04).abs().max()) > 0.1
+    rec = layout.unpack(out)
+    assert float((rec["f0"][interior] - 0.04).abs().max()) < 0.005
+    assert float((rec["roughness"][interior, 0] - 0.5).abs().max()) < 0.005
+    assert any(abs(m["f0"][0] - 0.04) < 0.005 for m in info["materials"]), info["materials"]
+
+
 def test_pooled_proposals_add_a_material_the_anchors_miss_and_nothing_where_they_suffice():
     model, obs, layout, theta, anchors = _two_material_fit()
     # the right half (f0 0.04, roughness 0.5) loses its anchors (126 of the 253): without pooling the one material
