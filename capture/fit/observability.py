@@ -259,7 +259,7 @@ SEED_SPREAD = 2.0
 
 
 def tile_seeds(layout: Layout, canon: Tensor, std: Tensor, observed: Tensor, anchors: Tensor, names: Sequence[str],
-               map_size: tuple[int, int], observable_std=None, block: int = SEED_BLOCK) -> Tensor:
+               map_size: tuple[int, int], observable_std=None, block: int = SEED_BLOCK, factor: float = 1.0) -> Tensor:
     """Material seeds where no texel is an anchor but a tile of texels agrees: ``[N, C]`` canonical values of the
     columns of ``names`` (in that order), one per tile of the ``map_size = (H, W)`` grid that qualifies.
 
@@ -270,14 +270,18 @@ def tile_seeds(layout: Layout, canon: Tensor, std: Tensor, observed: Tensor, anc
     (``std [T, P]``) / √n, below the parameter's observability threshold in every column — and the texels agree —
     their spread (1.4826 × MAD) at most :data:`SEED_SPREAD` × that median std. The seeds join the anchors as points
     of the reflectance sharing's clustering only (:func:`capture.fit.sharing.share_materials` ``seeds``); no texel
-    keeps its own fit because of them. Measured (docs/log.md, "tile seeds"): on the 256² Mitsuba sphere 191 seeds
-    gave its rough green dielectric (2 anchors in 3 469 texels) a material of its own, visible-highlight albedo / f0
-    / α 0.0097 / 0.0174 / 0.132 → 0.0059 / 0.0091 / 0.016."""
+    keeps its own fit because of them. ``factor``: the anchors' loosening (:func:`find_anchors`), which multiplies
+    the thresholds here too.
+
+    Measured (docs/log.md, "tile seeds"): on the 256² Mitsuba sphere 191 seeds gave its rough green dielectric (2
+    anchors in 3 469 texels) a material of its own, visible-highlight albedo / f0 / α 0.0097 / 0.0174 / 0.132 →
+    0.0059 / 0.0091 / 0.016; the demo scene with 3 000 e⁻ shot noise (anchors at × 10): 365 seeds, all-observed f0
+    0.088 → 0.076, well-lit f0 0.047 → 0.048."""
     H, W = map_size
     cols = [c for n in names for c in layout.cols(n)]
     spec = {s_.name: s_ for s_ in layout.specs}
-    thr = torch.tensor([std_threshold(spec[n], observable_std) for n in names for _ in range(spec[n].channels)],
-                       dtype=canon.dtype, device=canon.device)
+    thr = factor * torch.tensor([std_threshold(spec[n], observable_std) for n in names
+                                 for _ in range(spec[n].channels)], dtype=canon.dtype, device=canon.device)
     if not cols:
         return canon.new_zeros(0, 0)
     b = block

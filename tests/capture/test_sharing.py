@@ -491,6 +491,9 @@ def test_tile_seeds_take_the_median_of_tiles_whose_texels_agree_within_their_noi
     assert 1.4826 * 0.5 * 3.0 > SEED_SPREAD           # tile 2's estimates scatter more than their std allows
     seeds = tile_seeds(layout, canon, std, observed, torch.zeros(64, dtype=torch.bool), names, (8, 8))
     torch.testing.assert_close(seeds, truth[None], rtol=0, atol=1e-12)
+    # at the anchors' loosening × 2 tile 1 (standard error 1.25 t) qualifies too; tiles 2 and 3 still do not
+    loose = tile_seeds(layout, canon, std, observed, torch.zeros(64, dtype=torch.bool), names, (8, 8), factor=2.0)
+    torch.testing.assert_close(loose, truth[None].expand(2, -1), rtol=0, atol=1e-12)
     # texels that are anchors already are not pooled again: with tile 0's anchored, no seed is left
     anchors = tile == 0
     assert tile_seeds(layout, canon, std, observed, anchors, names, (8, 8)).shape == (0, 4)
