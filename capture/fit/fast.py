@@ -144,7 +144,7 @@ def _share(fit: _Fit, theta: Tensor, std: dict, observed_n: Tensor, info: dict) 
     shared_names = shared_default(layout)
     anchors, factor, scarce = find_anchors(layout, std, observed_n, shared_names, opts.observable_std)
     # tiles whose texels agree on a material none of them determines alone seed the clustering too, at the anchors'
-    # thresholds: a rough dielectric under a flash gave 2 anchors in 3 469 texels and no material of its own without
+    # thresholds (a rough dielectric under a flash had 2 anchors in 3 469 texels, and no material of its own)
     seeds = tile_seeds(layout, layout.canonical(theta), std, observed_n, anchors, shared_names, fit.obs.map_size,
                        opts.observable_std, factor=factor)
     theta_texel = theta

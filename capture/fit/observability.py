@@ -23,7 +23,7 @@ from materials.model import Model
 from materials.params import CANONICAL, ParamSpec
 
 from ..observations import Observations
-from .layout import ACC, FitResult, Layout
+from .layout import ACC, FitResult, Layout, SolverError
 from .noise import NOISE, check_noise, irls_weights, moderated_misfit, noise_sigma, photo_noise_ratio
 from .operators import pixel_operator, sampling_operator
 from .texel import jacobian
@@ -278,6 +278,12 @@ def tile_seeds(layout: Layout, canon: Tensor, std: Tensor, observed: Tensor, anc
     0.0059 / 0.0091 / 0.016; the demo scene with 3 000 e⁻ shot noise (anchors at × 10): 365 seeds, all-observed f0
     0.088 → 0.076, well-lit f0 0.047 → 0.048."""
     H, W = map_size
+    if isinstance(block, bool) or not isinstance(block, int) or block < 1 or not (factor > 0 and math.isfinite(factor)):
+        raise SolverError(f"tile_seeds: block must be an integer ≥ 1 and factor a finite number > 0, got {block!r}, "
+                          f"{factor!r}")
+    if canon.dim() != 2 or std.shape != canon.shape or canon.shape[0] != H * W or canon.shape[1] != layout.P:
+        raise SolverError(f"tile_seeds: canon and std must both be [H·W, P] = [{H * W}, {layout.P}], got "
+                          f"{tuple(canon.shape)} and {tuple(std.shape)}")
     cols = [c for n in names for c in layout.cols(n)]
     spec = {s_.name: s_ for s_ in layout.specs}
     thr = factor * torch.tensor([std_threshold(spec[n], observable_std) for n in names

@@ -444,6 +444,9 @@ def share_materials(model: Model, obs: Observations, layout, theta: Tensor, anch
     thr = torch.tensor([std_threshold(s) for s in shared for _ in range(s.channels)], dtype=ACC, device=dev)
     feats = layout.canonical(theta)[anchors][:, scols] / thr
     gen = torch.Generator().manual_seed(seed)
+    if seeds is not None and (seeds.dim() != 2 or seeds.shape[1] != len(scols)):
+        raise ValueError(f"share_materials: seeds must be [N, {len(scols)}] values of the shared parameters "
+                         f"{[s.name for s in shared]}, got {tuple(seeds.shape)}")
     points = feats if seeds is None or seeds.shape[0] == 0 else torch.cat([feats, seeds.to(feats) / thr])
     centres = kmeans_pp(points, candidates, gen) * thr                                 # canonical [K, Ps]
     ctx = _Context(model, layout, _chi2_observations(obs, noise), shared, per_texel, sep, scols)

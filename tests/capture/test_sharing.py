@@ -497,6 +497,10 @@ def test_tile_seeds_take_the_median_of_tiles_whose_texels_agree_within_their_noi
     # texels that are anchors already are not pooled again: with tile 0's anchored, no seed is left
     anchors = tile == 0
     assert tile_seeds(layout, canon, std, observed, anchors, names, (8, 8)).shape == (0, 4)
+    with pytest.raises(SolverError, match="block must be"):
+        tile_seeds(layout, canon, std, observed, anchors, names, (8, 8), block=0)
+    with pytest.raises(SolverError, match=r"\[16, 7\]"):
+        tile_seeds(layout, canon, std, observed, anchors, names, (4, 4))
 
 
 def test_tile_seeds_give_the_sharing_a_material_whose_texels_are_no_anchors():
@@ -522,6 +526,8 @@ def test_tile_seeds_give_the_sharing_a_material_whose_texels_are_no_anchors():
     assert float((rec["f0"][interior] - 0.04).abs().max()) < 0.005
     assert float((rec["roughness"][interior, 0] - 0.5).abs().max()) < 0.005
     assert any(abs(m["f0"][0] - 0.04) < 0.005 for m in info["materials"]), info["materials"]
+    with pytest.raises(ValueError, match="seeds must be"):
+        share_materials(model, obs, layout, theta, cut, candidates=2, seeds=seeds[:, :2])
 
 
 def test_pooled_proposals_add_a_material_the_anchors_miss_and_nothing_where_they_suffice():
