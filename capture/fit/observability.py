@@ -30,7 +30,7 @@ from .texel import jacobian
 
 __all__ = ["OBSERVABLE_STD", "RESOLVED_SHARE", "ANCHOR_MIN_FRACTION", "ANCHOR_LOOSENING", "SEED_BLOCK",
            "SEED_SPREAD", "std_threshold", "pull_push", "posterior_std", "finalize", "determined", "find_anchors",
-           "anchors_at", "tile_seeds"]
+           "anchors_at", "block_index", "tile_seeds"]
 
 
 #: Default thresholds on the marginal posterior standard deviation (canonical units) below which a
@@ -249,6 +249,13 @@ def anchors_at(layout: Layout, std: Tensor, observed: Tensor, names: Sequence[st
     return torch.stack([good[n] for n in names]).all(0)
 
 
+def block_index(H: int, W: int, block: int, device) -> Tensor:
+    """``[H·W]`` index of the ``block × block`` tile each texel of an ``H × W`` map lies in (row-major tiles)."""
+    i = torch.arange(H, device=device)[:, None] // block
+    j = torch.arange(W, device=device)[None, :] // block
+    return (i * ((W + block - 1) // block) + j).reshape(-1)
+
+
 #: Side in texels of the tiles of :func:`tile_seeds`.
 SEED_BLOCK = 4
 #: Largest spread of a tile's per-texel estimates (1.4826 × their median absolute deviation), in units of their median
@@ -291,10 +298,9 @@ def tile_seeds(layout: Layout, canon: Tensor, std: Tensor, observed: Tensor, anc
     if not cols:
         return canon.new_zeros(0, 0)
     b = block
-    ii = torch.arange(H, device=canon.device)[:, None]
-    jj = torch.arange(W, device=canon.device)[None, :]
-    tile = ((ii // b) * ((W + b - 1) // b) + jj // b).reshape(-1)
-    slot = ((ii % b) * b + jj % b).reshape(-1)
+    tile = block_index(H, W, b, canon.device)
+    slot = ((torch.arange(H, device=canon.device)[:, None] % b) * b
+            + torch.arange(W, device=canon.device)[None, :] % b).reshape(-1)
     n_tiles = int(tile.max()) + 1
     x, sd = canon[:, cols], std[:, cols]
     use = (observed.reshape(-1).bool() & ~anchors.reshape(-1) & torch.isfinite(sd).all(-1)

@@ -55,7 +55,7 @@ from materials.model import Model
 from ..observations import Observations
 from .layout import ACC, MAX_STEP, Layout, from_canonical, param_groups
 from .noise import moderated_misfit, noise_sigma, photo_noise_ratio
-from .observability import pull_push, std_threshold
+from .observability import block_index, pull_push, std_threshold
 from .texel import grid_values, jacobian, linear_solve, separable
 
 __all__ = ["share_materials", "unmatched_texels", "kmeans_pp", "pooled_materials", "borrow_albedo",
@@ -253,13 +253,6 @@ def _albedo_prior(albedo: Tensor, anchors: Tensor, anchor_label: Tensor, own: Te
     return torch.where((cnt >= min_anchors)[:, None] & own[None], cost, torch.zeros_like(cost))
 
 
-def _block_index(H: int, W: int, block: int, device) -> Tensor:
-    """``[H·W]`` index of the ``block × block`` tile each texel lies in (row-major tiles)."""
-    i = torch.arange(H, device=device)[:, None] // block
-    j = torch.arange(W, device=device)[None, :] // block
-    return (i * ((W + block - 1) // block) + j).reshape(-1)
-
-
 def pooled_materials(model: Model, layout, chi: Observations, pool: Tensor, *, block: int = 4,
                      grid: int = 12) -> tuple[Tensor, Tensor, Tensor] | None:
     """The best material of each ``block × block`` tile of the ``pool`` texels, fitted on their samples pooled.
@@ -296,7 +289,7 @@ def pooled_materials(model: Model, layout, chi: Observations, pool: Tensor, *, b
     T = H * W
     dev = pool.device
     sub = chi.select(pool[chi.texel])
-    tile = _block_index(H, W, block, dev)
+    tile = block_index(H, W, block, dev)
     nb = int(tile.max()) + 1
     tex = sub.texel
     y, w = sub.radiance.to(ACC), sub.weight.to(ACC)[:, None]
