@@ -56,6 +56,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from materials.model import Model
+from renderer.device import per_view
 from renderer.gbuffer import footprint_extent, pixel_filter, render_footprint
 from renderer.shading import prepare
 
@@ -387,34 +388,39 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
     if not (len(lights_per_view) == len(centre_gbuffers) == len(photos) == n) or n == 0:
         raise ObservationError(f"observe_footprints: need one camera, light list, centre G-buffer and photo per "
                                f"view, got {n}, {len(lights_per_view)}, {len(centre_gbuffers)}, {len(photos)}")
-    preps, fps, counts, texels, cast, uniform, partial, sub = [], [], [], [], 0, 0, 0, 0
-    for vi in range(n):
+
+    def one(vi):                                # one view's rays, texture footprints and shading terms
         pixels, k, kt, f = footprint_counts(centre_gbuffers[vi], map_size, photos[vi], psf_sigma)
         g = render_footprint(mesh, cameras[vi], pixels, k, psf_sigma=psf_sigma)
-        cast += int((k * k).sum())
+        cast = int((k * k).sum())
         # a pixel is whole when all its rays hit the object facing the camera
         facing = (g.normal * g.view).sum(-1) > 0
         HW = g.height * g.width
         covered = torch.zeros(HW, dtype=torch.float64).index_add(0, g.pixel, g.weight.double() * facing.double())
         whole = torch.zeros(HW, dtype=torch.bool)
         whole[pixels] = (covered[pixels] > 1.0 - 1e-6)
-        uniform += int(whole.sum()) * footprint_max(psf_sigma) ** 2
-        partial += int((~whole[pixels]).sum()) - int((covered[pixels] == 0).sum())
+        uniform = int(whole.sum()) * footprint_max(psf_sigma) ** 2
+        partial = int((~whole[pixels]).sum()) - int((covered[pixels] == 0).sum())
         g = g.select(whole[g.pixel])
         k_of = torch.zeros(HW, dtype=torch.long)
         kt_of = torch.zeros(HW, dtype=torch.long)
         k_of[pixels], kt_of[pixels] = k, kt
         share, taps = texture_footprints(mesh, cameras[vi], g, k_of[g.pixel], kt_of[g.pixel], map_size, psf_sigma)
         g.weight = share.to(g.weight.dtype)
-        texels.append(taps)
-        sub += int(((k_of * _sub_samples(k_of, kt_of))[whole] ** 2).sum())
-        preps.append(prepare(g, mesh, lights_per_view[vi], shadows=shadows))
+        sub = int(((k_of * _sub_samples(k_of, kt_of))[whole] ** 2).sum())
+        prep = prepare(g, mesh, lights_per_view[vi], shadows=shadows)
         kk = torch.zeros(HW, dtype=torch.long)
         kk[pixels] = k * k
         ff = torch.zeros(HW, dtype=torch.float64)
         ff[pixels] = f
-        counts.append(kk)
-        fps.append(ff)
+        return prep, taps, kk, ff, cast, uniform, partial, sub
+
+    res = per_view(one, n)
+    preps = [r[0] for r in res]
+    texels = [r[1] for r in res]
+    counts = [r[2] for r in res]
+    fps = [r[3] for r in res]
+    cast, uniform, partial, sub = (sum(r[i] for r in res) for i in range(4, 8))
     samples = observe_views(preps, photos, map_size, lights=lights, bilinear=True, dtype=dtype, clipped=clipped,
                             footprints=True, texels=texels)
     # group the kept samples by (view, pixel): every sample of a kept pixel survives (only unlit ones are dropped,

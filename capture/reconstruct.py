@@ -658,16 +658,14 @@ def _load(dataset_path, holdout, prog: Progress) -> _Loaded:
 def _gbuffers(ds: Dataset, prog: Progress) -> list:
     """One G-buffer per view with its shading prepared (shadow rays): geometry is known, so this happens once
     whatever the model and solver."""
+    from renderer.device import per_view
     from renderer.gbuffer import render_gbuffer
     from renderer.shading import prepare
 
     prog.start("gbuffer", f"{len(ds.views)} views")
-    preps = []
-    for v in ds.views:
-        g = render_gbuffer(ds.mesh, v.camera, 1)
-        preps.append(prepare(g, ds.mesh, v.lights, shadows=True))
-        prog.tick()
-    return preps
+    views = ds.views
+    return per_view(lambda i: prepare(render_gbuffer(ds.mesh, views[i].camera, 1), ds.mesh, views[i].lights,
+                                      shadows=True), len(views), prog.tick)
 
 
 # -- observations -----------------------------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""Where the fit runs (renderer.device, ``--device``): the spellings, the errors on a machine without CUDA, and — on a
+"""Where the fit runs (renderer.device, ``--device``): the spellings, the errors on a machine without CUDA, the views
+spread over CPU threads (``per_view``), and — on a
 machine with a GPU (``gpu`` marker; run with the device tool) — CUDA reconstructions and renders that agree with the
 CPU's within float32 rounding on photos Mitsuba 3 rendered."""
 
@@ -66,3 +67,30 @@ def test_cuda_synthetic_photos_match_the_cpu():
     for a, b in zip(cpu, gpu, strict=True):
         assert b.device.type == "cpu"
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_per_view_keeps_the_order_ticks_in_order_and_restores_the_thread_count():
+    import threading
+
+    from renderer.device import per_view
+
+    threads = torch.get_num_threads()
+    seen, ticks = {}, []
+    torch.set_num_threads(2)
+    try:
+        def work(i):
+            seen[i] = (torch.get_num_threads(), threading.get_ident())
+            return i * i
+
+        out = per_view(work, 5, done=lambda: ticks.append(len(ticks)))
+        assert out == [0, 1, 4, 9, 16] and ticks == [0, 1, 2, 3, 4]
+        assert {n for n, _ in seen.values()} == {1}                 # one torch thread in each worker
+        assert torch.get_num_threads() == 2                         # restored
+        torch.set_num_threads(1)                                    # one core: in the calling thread, as it is
+        seen.clear()
+        assert per_view(work, 3) == [0, 1, 4]
+        assert {t for _, t in seen.values()} == {threading.get_ident()}
+        with pytest.raises(ZeroDivisionError):                      # a view's error reaches the caller
+            per_view(lambda i: 1 // (i - 1), 3)
+    finally:
+        torch.set_num_threads(threads)

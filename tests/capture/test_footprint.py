@@ -236,3 +236,28 @@ def test_texture_footprint_of_a_plane_is_the_pixel_square_on_the_map():
     dense = torch.zeros(len(g), T * T, dtype=torch.float64)
     dense.index_put_((taps1.rows(), taps1.index.long()), taps1.weight, accumulate=True)
     assert torch.allclose(dense, torch.zeros_like(dense).scatter_add_(1, bi, bw))   # its own bilinear taps
+
+
+def test_footprints_do_not_depend_on_the_thread_count():
+    # observe_footprints builds the views in parallel threads (renderer.device.per_view), each with one torch thread:
+    # the same pixels, samples, shading terms and texel taps, bit for bit, with 1 or 2 torch threads
+    cfg = small_scene("ggx-lambert", image_size=48, texture_size=32, n_views=3)
+    sc = build_scene(cfg)
+    photos, _ = render_scene(sc, cfg)
+    cams, lights = [v.camera for v in sc.views], [v.lights for v in sc.views]
+    g1 = [render_gbuffer(sc.mesh, c, 1) for c in cams]
+    threads = torch.get_num_threads()
+    built = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            built.append(observe_footprints(sc.mesh, cams, lights, g1, photos, (32, 32)))
+    finally:
+        torch.set_num_threads(threads)
+    a, b = built
+    for name in ("radiance", "share", "group", "view", "pixel", "counts", "footprint_texels"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    for name in ("radiance", "irradiance", "texel", "pair_sample"):
+        assert torch.equal(getattr(a.samples, name), getattr(b.samples, name)), name
+    assert torch.equal(a.samples.taps.index, b.samples.taps.index)
+    assert torch.equal(a.samples.taps.weight, b.samples.taps.weight)
