@@ -260,3 +260,20 @@ def test_read_image_dispatch_and_transfer(tmp_path):
     torch.testing.assert_close(io.read_image(tmp_path / "x.png"), img, atol=2e-5, rtol=0)
     lin = io.read_image(tmp_path / "x.png", transfer="linear")
     torch.testing.assert_close(lin, io.encode(img, "srgb"), atol=2e-5, rtol=0)
+
+
+def test_png_codes_are_written_as_given(tmp_path):
+    import numpy as np
+
+    g = np.random.default_rng(3)
+    for shape, dtype in (((5, 7, 3), np.uint8), ((5, 7, 4), np.uint16), ((5, 7), np.uint8)):
+        codes = g.integers(0, np.iinfo(dtype).max + 1, size=shape, dtype=dtype)
+        io.write_png_codes(tmp_path / "c.png", codes)
+        back, bits = io.read_raster(tmp_path / "c.png")
+        assert bits == 8 * np.dtype(dtype).itemsize
+        assert np.array_equal(back.reshape(codes.shape), codes)       # RGB(A) order on both sides
+    with pytest.raises(io.ImageIOError, match="uint8 or uint16"):
+        io.write_png_codes(tmp_path / "f.png", np.zeros((2, 2, 3), np.float32))
+    with pytest.raises(io.ImageIOError, match="shape"):
+        io.write_png_codes(tmp_path / "s.png", np.zeros((2, 2, 2), np.uint8))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.png"]    # nothing left by the refusals
