@@ -565,49 +565,54 @@ def render_scene(scene: Scene, config: SyntheticConfig, device="cpu") -> tuple[l
     images are returned there. The CPU by default: a synthetic dataset is then the same, bit for bit, on every
     machine (the same photos on CUDA differ in the last bits).
     """
-    from renderer.device import resolve_device
+    from renderer.device import per_view, resolve_device
 
     dev = resolve_device(device)
     maps = {name: m.to(dev) for name, m in scene.maps.items()}
-    images, preps = [], []
     k = config.supersample
-    with torch.no_grad():
-        for vi, view in enumerate(scene.views):
-            cam = view.camera
-            g1 = render_gbuffer(scene.mesh, cam, 1)
-            preps.append(prepare(g1, scene.mesh, view.lights, shadows=config.shadows))
-            n_pix = cam.height * cam.width
-            if k == 1:
-                images.append(g1.to_image(shade(scene.model, maps, preps[-1], sampling=config.sampling).cpu()))
+
+    def one(vi: int) -> tuple[Tensor, object]:                 # one view: its photo and pixel-centre Prepared
+        view = scene.views[vi]
+        cam = view.camera
+        g1 = render_gbuffer(scene.mesh, cam, 1)
+        prep1 = prepare(g1, scene.mesh, view.lights, shadows=config.shadows)
+        n_pix = cam.height * cam.width
+        if k == 1:
+            return g1.to_image(shade(scene.model, maps, prep1, sampling=config.sampling).cpu()), prep1
+        # only pixels whose centre or a neighbour's hits the object can see it (an object thinner than a pixel
+        # that no centre ray hits would be missed; the built-in meshes have none)
+        hit = torch.zeros(n_pix)
+        hit[g1.pixel] = 1.0
+        near = F.max_pool2d(hit.reshape(1, 1, cam.height, cam.width), 3, stride=1, padding=1).reshape(-1) > 0
+        todo = torch.nonzero(near).squeeze(-1)
+        gen = torch.Generator().manual_seed(config.seed * 7919 + vi) if config.jitter else None
+        step = max(1, RENDER_BLOCK_RAYS // (k * k))
+        acc = torch.zeros(n_pix, 3)
+        sub = torch.zeros(cam.height * k, cam.width * k, 3) if config.psf_sigma > 0 else None
+        for start in range(0, len(todo), step):
+            g = render_gbuffer(scene.mesh, cam, k, jitter=gen, pixels=todo[start:start + step])
+            if len(g) == 0:
                 continue
-            # only pixels whose centre or a neighbour's hits the object can see it (an object thinner than a pixel
-            # that no centre ray hits would be missed; the built-in meshes have none)
-            hit = torch.zeros(n_pix)
-            hit[g1.pixel] = 1.0
-            near = F.max_pool2d(hit.reshape(1, 1, cam.height, cam.width), 3, stride=1, padding=1).reshape(-1) > 0
-            todo = torch.nonzero(near).squeeze(-1)
-            gen = torch.Generator().manual_seed(config.seed * 7919 + vi) if config.jitter else None
-            step = max(1, RENDER_BLOCK_RAYS // (k * k))
-            acc = torch.zeros(n_pix, 3)
-            sub = torch.zeros(cam.height * k, cam.width * k, 3) if config.psf_sigma > 0 else None
-            for start in range(0, len(todo), step):
-                g = render_gbuffer(scene.mesh, cam, k, jitter=gen, pixels=todo[start:start + step])
-                if len(g) == 0:
-                    continue
-                prep = prepare(g, scene.mesh, view.lights, shadows=config.shadows)
-                rad = shade(scene.model, maps, prep, sampling=config.sampling).cpu()
-                if sub is None:
-                    acc.index_add_(0, g.pixel, rad.to(acc.dtype) * g.weight[:, None].to(acc.dtype))
-                else:
-                    # the ray's stratum: its hit projected back (integer pixel centres: pixel x spans [x − ½, x + ½])
-                    xy, _ = cam.project(g.position.to(torch.float64))
-                    px, py = g.pixel % cam.width, g.pixel // cam.width
-                    sx = torch.minimum(torch.maximum(torch.floor((xy[:, 0] + 0.5) * k).long(), px * k), px * k + k - 1)
-                    sy = torch.minimum(torch.maximum(torch.floor((xy[:, 1] + 0.5) * k).long(), py * k), py * k + k - 1)
-                    sub[sy, sx] = rad.to(sub.dtype)
-            if sub is not None:
-                acc = _blur_strata(sub, config.psf_sigma * k, k).reshape(-1, 3)
-            images.append(acc.reshape(cam.height, cam.width, 3))
+            prep = prepare(g, scene.mesh, view.lights, shadows=config.shadows)
+            rad = shade(scene.model, maps, prep, sampling=config.sampling).cpu()
+            if sub is None:
+                acc.index_add_(0, g.pixel, rad.to(acc.dtype) * g.weight[:, None].to(acc.dtype))
+            else:
+                # the ray's stratum: its hit projected back (integer pixel centres: pixel x spans [x − ½, x + ½])
+                xy, _ = cam.project(g.position.to(torch.float64))
+                px, py = g.pixel % cam.width, g.pixel // cam.width
+                sx = torch.minimum(torch.maximum(torch.floor((xy[:, 0] + 0.5) * k).long(), px * k), px * k + k - 1)
+                sy = torch.minimum(torch.maximum(torch.floor((xy[:, 1] + 0.5) * k).long(), py * k), py * k + k - 1)
+                sub[sy, sx] = rad.to(sub.dtype)
+        if sub is not None:
+            acc = _blur_strata(sub, config.psf_sigma * k, k).reshape(-1, 3)
+        return acc.reshape(cam.height, cam.width, 3), prep1
+
+    with torch.no_grad():
+        # the views in parallel threads, one torch thread each (renderer.device.per_view): the same photos bit for
+        # bit whatever the cores
+        out = per_view(one, len(scene.views))
+    images, preps = [o[0] for o in out], [o[1] for o in out]
     return images, preps
 
 
