@@ -101,3 +101,16 @@ def per_view(work: Callable[[int], _R], n: int, done: Callable[[], None] | None 
                 return out
         finally:
             torch.set_num_threads(threads)
+            _trim()
+
+
+def _trim() -> None:
+    """Return the memory the worker threads freed to the system (glibc keeps a heap per thread, and what a finished
+    worker's heap holds would otherwise stay in the process's peak memory); nothing where there is no glibc."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
