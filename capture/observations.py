@@ -35,6 +35,7 @@ from torch import Tensor
 
 from materials.geometry import Angles
 from materials.model import Model
+from renderer.device import per_view
 from renderer.shading import radiance_sum
 
 __all__ = ["Observations", "ObservationError", "DROP_REASONS", "TexelTaps", "observe_views", "synthetic_observations"]
@@ -389,9 +390,13 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         raise ObservationError(f"texels: need one TexelTaps per view, got {len(texels)} for "
                                f"{len(prepared)} views")
     settings = _ViewSettings(exposures, saturation, clipped, footprints, texels, dtype, light_id)
-    drops = dict.fromkeys(DROP_REASONS, 0)
-    parts = [_observe_view(vi, prep, photo, settings, drops)
-             for vi, (prep, photo) in enumerate(zip(prepared, photos, strict=True))]
+    def one(vi: int) -> tuple[dict, dict]:          # a view's samples and its own drop counts (views run in threads)
+        counts = dict.fromkeys(DROP_REASONS, 0)
+        return _observe_view(vi, prepared[vi], photos[vi], settings, counts), counts
+
+    done = per_view(one, len(prepared))
+    parts = [part for part, _ in done]
+    drops = {k: sum(counts[k] for _, counts in done) for k in DROP_REASONS}
     return _concatenate(parts, drops, (H, W), bilinear=bilinear, texels=texels is not None,
                         n_lights=max(len(lights), 1))
 
