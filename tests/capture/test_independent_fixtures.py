@@ -175,3 +175,15 @@ def test_cameras_in_another_renderers_frame_are_reported_not_passed(mitsuba_scen
     assert r.fit["chi2_per_residual"] > 100
     assert any("do not explain the photos" in w and "convention" in w for w in r.warnings)
     assert "do not explain the photos" in (tmp_path / "r" / "summary.txt").read_text()
+
+
+def test_mitsuba_adam_baseline_checks_its_scene_and_options_before_mitsuba(mitsuba_scene):
+    # scripts/mitsuba_adam.py (Mitsuba 3's plain Adam on a Lambert albedo, docs/benchmarks.md): a scene that is not
+    # Lambert is refused with the reason, before Mitsuba is imported; bad options are argparse errors
+    spec = importlib.util.spec_from_file_location("mitsuba_adam_script", ROOT / "scripts" / "mitsuba_adam.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    with pytest.raises(SystemExit, match="not a Lambert scene"):
+        module.run(str(mitsuba_scene("sphere-ggx-lambert")), seconds=1, spp=1, lr=0.01, every=1)
+    with pytest.raises(SystemExit):
+        module.main([str(mitsuba_scene("torus-lambert")), "--spp", "0"])
