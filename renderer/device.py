@@ -74,10 +74,11 @@ def per_view(work: Callable[[int], _R], n: int, done: Callable[[], None] | None 
     oversubscribed; the count is restored afterwards. For the per-view CPU work of building observations — ray
     casting (embree releases the GIL), footprints, shading terms — whose tensors are too small for torch's own
     threads to keep every core busy: the 256² Mitsuba torus's pixel footprints (12 views) took 2.5–2.9 s this way
-    against 3.8–4.2 s one view at a time with 2 threads. Each view's result does not depend on the others, on the
-    order they run in or on the number of threads (bitwise). ``done()`` is called in the calling thread after each
-    view, in order (a progress bar's tick). Calls from several threads at once run one after the other (torch's
-    thread count is global).
+    against 3.8–4.2 s one view at a time with 2 threads. Each view's result does not depend on the others or on the
+    order they run in, and — each view running with one torch thread, as it also does one at a time with one thread
+    — not on the thread count (bitwise; one view alone keeps the caller's threads). ``done()`` is called in the
+    calling thread after each view, in order (a progress bar's tick). Calls from several threads at once run one
+    after the other (torch's thread count is global); a call from inside a view runs in that view's thread.
     """
     workers = min(torch.get_num_threads(), n)
     if workers <= 1:
