@@ -180,6 +180,19 @@ def test_dielectric_float32_at_grazing_incidence_near_unit_index():
         assert abs(f32 - f64) < 2e-6, (eta, cos, f32, f64)
 
 
+def test_f0_form_float32_at_grazing_incidence_for_a_faint_interface():
+    # found by the property test below: with f0 tiny, 1/η² = q → 1 and cos²θ_t = 1 − q(1 − c²) cancelled in float32
+    # (f0 1e-9, c 0.0061: 0.124156 against 0.124131); as 4s/(1 + s)² + q c² float32 stays within 2e-6 of float64, which
+    # matches the complex-index reference at η = ior_from_f0(f0)
+    for f0, cos in [(1e-9, 0.006135729607194662), (1e-10, 1e-3), (1e-6, 1e-4), (0.04, 1e-4)]:
+        f0, cos = float(np.float32(f0)), float(np.float32(cos))
+        f32 = fr.fresnel_from_f0(torch.tensor([[f0]]), torch.tensor([[cos]])).item()
+        f64 = fr.fresnel_from_f0(t64(f0), c64(cos)).item()
+        ref = complex_fresnel(float(fr.ior_from_f0(t64(f0))), 0.0, torch.tensor([[cos]], dtype=D64)).item()
+        assert f64 == pytest.approx(ref, abs=1e-9)
+        assert abs(f32 - f64) < 2e-6, (f0, cos, f32, f64)
+
+
 def test_spherical_gaussian_beats_schlick_for_glass():
     c = torch.linspace(0.0, 1.0, 201, dtype=D64).unsqueeze(-1)
     exact = fr.fresnel_dielectric(t64(1.5), c)
