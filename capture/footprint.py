@@ -415,12 +415,8 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         ff[pixels] = f
         return prep, taps, kk, ff, cast, uniform, partial, sub
 
-    res = per_view(one, n)
-    preps = [r[0] for r in res]
-    texels = [r[1] for r in res]
-    counts = [r[2] for r in res]
-    fps = [r[3] for r in res]
-    cast, uniform, partial, sub = (sum(r[i] for r in res) for i in range(4, 8))
+    preps, texels, counts, fps, *tallies = zip(*per_view(one, n), strict=True)
+    cast, uniform, partial, sub = (sum(t) for t in tallies)
     samples = observe_views(preps, photos, map_size, lights=lights, bilinear=True, dtype=dtype, clipped=clipped,
                             footprints=True, texels=texels)
     # group the kept samples by (view, pixel): every sample of a kept pixel survives (only unlit ones are dropped,

@@ -17,6 +17,7 @@ the GPU differ in the last bits, which a poorly determined fit can amplify.
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -108,10 +109,18 @@ def per_view(work: Callable[[int], _R], n: int, done: Callable[[], None] | None 
 def _trim() -> None:
     """Return the memory the worker threads freed to the system (glibc keeps a heap per thread, and what a finished
     worker's heap holds would otherwise stay in the process's peak memory); nothing where there is no glibc."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim``, looked up once (``find_library`` runs ``ldconfig``: ~18 ms a call), or None."""
     import ctypes
     import ctypes.util
 
     try:
-        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
     except (OSError, AttributeError):
-        pass
+        return None
