@@ -56,7 +56,18 @@ from materials.params import CANONICAL, preview_transfer
 from materials.roughness import half_max_angle, roughness_to_alpha
 from renderer.gbuffer import check_psf_sigma
 
-from .fit import LOSSES, NOISE, FitResult, SolverError, photo_noise_ratio, photo_sigma, solve_adam, solve_fast
+from .fit import (
+    LOSSES,
+    NOISE,
+    FitResult,
+    SolverError,
+    photo_noise_ratio,
+    photo_sigma,
+    pyramid_size,
+    solve_adam,
+    solve_fast,
+    upsample_maps,
+)
 from .fit.options import FitOptions
 from .observations import Observations, observe_views
 
@@ -174,7 +185,7 @@ def static_lights(views) -> tuple[bool, int, int]:
 
 #: The fast solver's options (every field of FitOptions but the loss, which reconstruct takes itself) and the pixel
 #: footprints it fits (an input, not an option).
-_FAST_KEYS = tuple(n for n in FitOptions.names() if n != "loss") + ("footprints",)
+_FAST_KEYS = tuple(n for n in FitOptions.names() if n != "loss") + ("footprints", "refine_from")
 _ADAM_KEYS = ("iterations", "lr", "delta", "observable_std", "noise", "sampling", "time_budget_s")
 
 
@@ -536,7 +547,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     mdl = _model(model, inputs.known)
     report.model, report.model_spec = model, _model_spec(model)
     with _timed(times, "solve"):
-        fitted = _final_fit(mdl, seen, fitter, prog, report)
+        fitted = _final_fit(mdl, seen, fitter, data.fit_views, prog, report)
     chi2 = _check_misfit(report, fitted, seen)
     known_maps = _known_maps(fitted.model, seen.obs.map_size)
     spt, vpt = seen.obs.samples_per_texel(), seen.obs.views_per_texel()
@@ -833,15 +844,18 @@ class _Fitter:
     progress: Callable[[str, int, float], None]
     device: torch.device = torch.device("cpu")     #: where the fits run
 
-    def fit(self, model, obs: Observations,
-            footprints: PixelFootprints | None = None) -> tuple[FitResult, object, dict]:
-        """:func:`_fit` of ``model`` to ``obs`` (and, when given, the pixel ``footprints``) on :attr:`device`: the
-        observations go there for the fit and the result comes back to the CPU."""
+    def fit(self, model, obs: Observations, footprints: PixelFootprints | None = None,
+            refine_from: Mapping[str, Tensor] | None = None) -> tuple[FitResult, object, dict]:
+        """:func:`_fit` of ``model`` to ``obs`` (and, when given, the pixel ``footprints``; the fast solver's
+        ``refine_from`` maps) on :attr:`device`: the observations go there for the fit and the result comes back to
+        the CPU."""
         moved = obs.device != self.device
         if moved:
             obs = obs.to(self.device)
             footprints = footprints.to(self.device) if footprints is not None else None
         options = {**self.options, "footprints": footprints} if footprints is not None else self.options
+        if refine_from is not None:
+            options = {**options, "refine_from": {k: v.to(self.device) for k, v in refine_from.items()}}
         fit, model, notes = _fit(model, obs, self.solver, self.loss, options, self.progress, self.scalars)
         return (fit.to("cpu") if moved else fit), model, notes
 
@@ -952,11 +966,28 @@ class _Fitted(NamedTuple):
     scalar_notes: dict              #: notes on the fitted scalars (the report's ``fit.scalars``)
 
 
-def _final_fit(mdl, seen: _Observed, fitter: _Fitter, prog: Progress, report: Report) -> _Fitted:
-    """Fit the chosen model on the fitted views at full size; warn of scalars observable in no texel."""
+def _final_fit(mdl, seen: _Observed, fitter: _Fitter, fit_views: list[int], prog: Progress,
+               report: Report) -> _Fitted:
+    """Fit the chosen model on the fitted views at full size; warn of scalars observable in no texel. When the maps
+    are finer than the photos' pixel centres sample (:func:`capture.fit.pyramid_size`, fast solver with footprints
+    only), the whole fit runs on coarser maps first and its maps, upsampled, start the footprint steps at full
+    size (the report's ``fit.pyramid``)."""
     prog.start("solve", report.model)
+    size = pyramid_size(seen.obs) if fitter.solver == "fast" and seen.fp is not None else seen.texture_size
     try:
-        fit, mdl, scalar_notes = fitter.fit(mdl, seen.obs, seen.fp)
+        if size < seen.texture_size:
+            t0 = time.perf_counter()
+            cobs = seen.observe(size).select_views(fit_views)
+            cfp = seen.footprints(size).select_views(fit_views)
+            coarse, mdl, scalar_notes = fitter.fit(mdl, cobs, cfp)
+            t1 = time.perf_counter()
+            fit, _, _ = fitter.fit(mdl, seen.obs, seen.fp, refine_from=upsample_maps(coarse.maps, seen.texture_size))
+            fit.info["pyramid"] = {"coarse_size": size, "coarse_samples": cobs.n_samples, "coarse_s": t1 - t0,
+                                   "refine_s": time.perf_counter() - t1,
+                                   "coarse_fit": {k: v for k, v in coarse.info.items()
+                                                  if isinstance(v, (int, float, str)) and k != "accepted"}}
+        else:
+            fit, mdl, scalar_notes = fitter.fit(mdl, seen.obs, seen.fp)
     except SolverError as exc:
         prog.abort()
         raise ReconstructionError(str(exc)) from None
@@ -1404,6 +1435,12 @@ def _summary(r: Report) -> str:
             f"{k} {', '.join(f'{x:.4g}' for x in v)} "
             + (f"(fitted: median of {fitted[k]['from_texels']} texels)" if k in fitted else "(given)")
             for k, v in per_object.items()))
+    pyr = r.fit.get("pyramid")
+    if pyr:
+        lines.append(f"coarse to fine: the photos' pixel centres sample the {r.coverage.get('texels', 0)} texels too "
+                     f"sparsely for per-texel fits, so the fit ran on {pyr['coarse_size']}² maps first "
+                     f"({pyr['coarse_s']:.1f} s) and its maps, upsampled, started the footprint steps at full size "
+                     f"({pyr['refine_s']:.1f} s); texels finer than the photos resolve hold the regularised solution")
     if r.fit.get("share_anchor_factor", 1.0) > 1.0:
         lines.append(f"reflectance sharing seeded from {r.fit['share_anchors']} roughly determined texels "
                      f"(thresholds × {r.fit['share_anchor_factor']:g}: fewer than 1 % of the texels determine every "

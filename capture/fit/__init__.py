@@ -44,7 +44,7 @@ Modules, each importing only those before it: ``layout`` ← ``noise`` ← ``tex
 """
 
 from .adam import solve_adam
-from .fast import solve_fast
+from .fast import pyramid_size, solve_fast, upsample_maps
 from .joint import refine_joint
 from .layout import FitResult, Layout, SolverError
 from .noise import LOSSES, NOISE, noise_sigma, photo_noise_ratio, photo_sigma, robust_rho
@@ -54,4 +54,5 @@ from .sharing import share_materials, unmatched_texels
 
 __all__ = ["FitOptions", "Layout", "FitResult", "SolverError", "LOSSES", "OBSERVABLE_STD", "NOISE", "solve_fast",
            "solve_adam", "refine_joint", "posterior_std", "std_threshold", "determined", "pull_push", "robust_rho",
-           "noise_sigma", "photo_noise_ratio", "photo_sigma", "share_materials", "unmatched_texels"]
+           "noise_sigma", "photo_noise_ratio", "photo_sigma", "share_materials", "unmatched_texels", "pyramid_size",
+           "upsample_maps"]

@@ -35,7 +35,8 @@ from .texel import (
 )
 
 __all__ = ["ANCHOR_RETRY_FACTOR", "MISFIT_RETRY", "FOOTPRINT_STEPS", "FOOTPRINT_FREE_STEPS",
-           "FOOTPRINT_TEXTURE_PRIOR", "solve_fast"]
+           "FOOTPRINT_TEXTURE_PRIOR", "PYRAMID_MIN_SAMPLES", "PYRAMID_MIN_SIZE", "pyramid_size", "upsample_maps",
+           "solve_fast"]
 
 
 #: When even the last factor of :data:`ANCHOR_LOOSENING` leaves fewer than :data:`ANCHOR_MIN_FRACTION` anchors, the
@@ -72,6 +73,50 @@ FOOTPRINT_FREE_STEPS = 6
 #: 1e-3); the shared models' weight (``sharing``, 1) gave χ² 89 there. On photos blurred by a Gaussian PSF
 #: (σ = 0.7 px) the prior is what makes the deconvolution stable: albedo 0.117 without it, 0.052 at 1e-3.
 FOOTPRINT_TEXTURE_PRIOR = 1e-3
+
+
+#: The per-texel stages (closed form, LM, posterior, sharing) need samples in a texel to say anything about it: on
+#: maps finer than the photos resolve they see few or none (8 views of 256² on 1024² maps: 0.31 pixel centres per
+#: texel their bilinear reads reach, 31 texels roughly determined, χ² per residual 132 after 568 s).
+#: :func:`pyramid_size` then picks the largest map size, halving, at which the pixel centres give at least this many
+#: samples per texel their reads reach; the whole fit runs there and its maps, upsampled (:func:`upsample_maps`),
+#: start the footprint steps at full size (``refine_from`` of :func:`solve_fast`). At 1 the per-texel stages have a
+#: sample per texel they touch; the benchmark scenes whose maps match their photos read 1.9–2.7 and are fitted as
+#: before. Measured: docs/reconstruction.md, "Maps finer than the photos".
+PYRAMID_MIN_SAMPLES = 1.0
+#: ... but never below this size (a coarser level says too little about the layout of the materials).
+PYRAMID_MIN_SIZE = 32
+
+
+def pyramid_size(obs: Observations, min_samples: float = PYRAMID_MIN_SAMPLES, min_size: int = PYRAMID_MIN_SIZE) -> int:
+    """The map size at which :func:`solve_fast`'s per-texel stages see enough samples: the largest of the map size
+    halved k ≥ 0 times (at least ``min_size``) where the observations' pixel centres give at least ``min_samples``
+    samples per texel their reads reach (the bilinear taps' texels when the observations have them, else the
+    nearest ones); the map size itself when it qualifies, or is not square, or cannot be halved."""
+    H, W = obs.map_size
+    if H != W or obs.n_samples == 0:
+        return H
+    taps = obs.bilinear_index if obs.bilinear_index is not None else obs.texel[:, None]
+    i, j = taps // W, taps % W
+    size = H
+    while True:
+        k = H // size
+        per_texel = obs.n_samples / int(torch.unique((i // k) * (W // k) + j // k).numel())
+        if per_texel >= min_samples or size // 2 < min_size or size % 2:
+            return size
+        size //= 2
+
+
+def upsample_maps(maps: Mapping[str, Tensor], size: int) -> dict[str, Tensor]:
+    """Maps ``name → [h, w, C]`` resampled to ``[size, size, C]`` bilinearly, texel centres aligned as the renderer
+    reads them (a texel's centre at ((j + ½)/w, (i + ½)/h), clamped at the borders): values stay in each map's
+    range."""
+    out = {}
+    for k, m in maps.items():
+        x = m.permute(2, 0, 1)[None].to(torch.float64)
+        out[k] = torch.nn.functional.interpolate(x, size=(size, size), mode="bilinear",
+                                                 align_corners=False)[0].permute(1, 2, 0).to(m.dtype)
+    return out
 
 
 class _Plan(NamedTuple):
@@ -279,8 +324,36 @@ def _footprint_stage(fit: _Fit, theta: Tensor, footprints, share: bool,
     return theta, finfo
 
 
+def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float) -> FitResult:
+    """:func:`solve_fast` with ``refine_from``: the footprint steps from ``maps``, then the finalisation."""
+    model, layout, obs, opts = fit.model, fit.layout, fit.obs, fit.opts
+    missing = [n for n in model.param_names if n not in maps]
+    if missing:
+        raise SolverError(f"refine_from must give a map of every fitted parameter of '{model.name}'; missing "
+                          f"{missing}")
+    if footprints is None:
+        raise SolverError("refine_from runs only the footprint steps: give the photos' pixel footprints "
+                          "(footprints=...)")
+    theta = init_theta(model, layout, obs, maps).to(ACC)
+    footprints = pixel_operator(footprints, obs.n_texels)
+    share = bool(shared_default(layout)) and opts.share is not False
+    steps = FOOTPRINT_STEPS if opts.footprint_iterations is None else int(opts.footprint_iterations)
+    info = {"options": opts.to_dict(), "refined_from": "maps"}
+    history = []
+    if steps > 0:
+        theta, finfo = fit.refine(theta, steps, opts.cg_iterations if opts.cg_iterations is not None else 30,
+                                  opts.sharing if share else FOOTPRINT_TEXTURE_PRIOR,
+                                  opts.anchor_weight if share else 0.0, footprints=footprints)
+        info.update({f"footprint_{k.removeprefix('joint_')}": v for k, v in finfo.items()})
+        history = list(finfo["joint_history"])
+    return finalize(model, layout, obs, theta, fit.groups, loss=opts.loss, delta=fit.delta,
+                    observable_std=opts.observable_std, noise=fit.noise, history=history, iterations=0, t0=t0,
+                    solver="fast", info=info, sampling=opts.sampling, keep_unobservable=True, footprints=footprints)
+
+
 def solve_fast(model: Model, obs: Observations, options: FitOptions | None = None, *,
                init: Mapping[str, Tensor] | None = None, footprints=None,
+               refine_from: Mapping[str, Tensor] | None = None,
                progress: Callable[[str, int, float], None] | None = None, **overrides) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
@@ -302,6 +375,11 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
             (:func:`refine_joint` with ``footprints``), with the same prior; the posterior std and the
             observability are then judged through the footprint operator (:func:`posterior_std`). None = the
             pixel-centre model only (photos the fit's own pixel-centre renderer made).
+        refine_from: maps ``name → [H, W, C]`` of every fitted parameter, e.g. a coarser fit's upsampled
+            (:func:`pyramid_size`, :func:`upsample_maps`): the per-texel stages, the sharing and the pixel-centre
+            refinement are skipped, and only the footprint steps run from these maps (``footprints`` required),
+            with the neighbour prior, and the material parameters tied to these maps by ``anchor_weight`` where
+            the model has any; their values are kept where the photos leave a texel undetermined.
         progress: callback ``(stage, iteration, cost)``.
 
     Returns:
@@ -322,6 +400,8 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
     if opts.sampling == "bilinear" and obs.bilinear_index is None:
         raise SolverError("sampling='bilinear' needs observations built with bilinear=True (observe_views)")
     fit = _Fit(model, obs, layout, groups, opts, delta, check_noise(opts.noise), progress)
+    if refine_from is not None:
+        return _refine_from(fit, refine_from, footprints, t0)
     theta, info = closed_form_init(model, layout, obs, theta, plan.grid, opts.loss, delta, sep, opts.refine,
                                     fixed=tuple(init or ()))
     info["grid_s"] = time.perf_counter() - t_grid
