@@ -980,12 +980,14 @@ def _final_fit(mdl, seen: _Observed, fitter: _Fitter, fit_views: list[int], prog
             cobs = seen.observe(size).select_views(fit_views)
             cfp = seen.footprints(size).select_views(fit_views)
             coarse, mdl, scalar_notes = fitter.fit(mdl, cobs, cfp)
+            start = upsample_maps(coarse.maps, seen.texture_size)
+            note = {"coarse_size": size, "coarse_samples": cobs.n_samples, "coarse_s": time.perf_counter() - t0,
+                    "coarse_fit": {k: v for k, v in coarse.info.items()
+                                   if isinstance(v, (int, float, str)) and k != "accepted"}}
+            del cobs, cfp, coarse       # the coarse problem is not needed beside the full-size one
             t1 = time.perf_counter()
-            fit, _, _ = fitter.fit(mdl, seen.obs, seen.fp, refine_from=upsample_maps(coarse.maps, seen.texture_size))
-            fit.info["pyramid"] = {"coarse_size": size, "coarse_samples": cobs.n_samples, "coarse_s": t1 - t0,
-                                   "refine_s": time.perf_counter() - t1,
-                                   "coarse_fit": {k: v for k, v in coarse.info.items()
-                                                  if isinstance(v, (int, float, str)) and k != "accepted"}}
+            fit, _, _ = fitter.fit(mdl, seen.obs, seen.fp, refine_from=start)
+            fit.info["pyramid"] = {**note, "refine_s": time.perf_counter() - t1}
         else:
             fit, mdl, scalar_notes = fitter.fit(mdl, seen.obs, seen.fp)
     except SolverError as exc:

@@ -336,9 +336,10 @@ def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float) -
     """:func:`solve_fast` with ``refine_from``: the footprint steps from ``maps``, then the finalisation."""
     model, layout, obs, opts = fit.model, fit.layout, fit.obs, fit.opts
     missing = [n for n in model.param_names if n not in maps]
-    if missing:
-        raise SolverError(f"refine_from must give a map of every fitted parameter of '{model.name}'; missing "
-                          f"{missing}")
+    extra = [n for n in maps if n not in model.param_names]
+    if missing or extra:
+        raise SolverError(f"refine_from must give a map of every fitted parameter of '{model.name}' "
+                          f"({list(model.param_names)}) and no other; missing {missing}, not fitted {extra}")
     if footprints is None:
         raise SolverError("refine_from runs only the footprint steps: give the photos' pixel footprints "
                           "(footprints=...)")

@@ -54,6 +54,8 @@ def test_refine_from_checks_its_maps_and_needs_footprints():
     obs = synthetic_observations(model, gt, samples_per_texel=4)
     with pytest.raises(SolverError, match="missing \\['albedo'\\]"):
         solve_fast(model, obs, refine_from={})
+    with pytest.raises(SolverError, match="not fitted \\['f0'\\]"):
+        solve_fast(model, obs, refine_from={**gt, "f0": gt["albedo"]})
     with pytest.raises(SolverError, match="footprints"):
         solve_fast(model, obs, refine_from=gt)
 
