@@ -175,6 +175,21 @@ class _Fit:
                             noise=self.noise, noise_adaptive=("albedo",), anchor_weight=anchor_weight,
                             footprints=footprints, anchor_target=anchor_target)
 
+    def footprint_steps(self, start: Tensor, n: int, share: bool, anchor_weight: float, footprints,
+                        target: Tensor | None = None) -> tuple[Tensor, dict]:
+        """``n`` joint LM steps on the pixel ``footprints`` from θ ``start``: the solver's PCG iterations, the
+        sharing's prior weight when materials are shared (else :data:`FOOTPRINT_TEXTURE_PRIOR`), the material tie
+        ``anchor_weight`` to ``target`` (None: ``start``'s values)."""
+        opts = self.opts
+        return self.refine(start, n, opts.cg_iterations if opts.cg_iterations is not None else 30,
+                           opts.sharing if share else FOOTPRINT_TEXTURE_PRIOR, anchor_weight, footprints=footprints,
+                           anchor_target=target)
+
+
+def _footprint_info(finfo: dict) -> dict:
+    """The footprint steps' :func:`refine_joint` info under the report's ``footprint_`` names."""
+    return {f"footprint_{k.removeprefix('joint_')}": v for k, v in finfo.items()}
+
 
 @dataclass
 class _Sharing:
@@ -314,9 +329,7 @@ def _footprint_stage(fit: _Fit, theta: Tensor, footprints, share: bool,
         return theta, None
 
     def footprint_steps(start, n, weight, target=None):
-        return fit.refine(start, n, opts.cg_iterations if opts.cg_iterations is not None else 30,
-                          opts.sharing if share else FOOTPRINT_TEXTURE_PRIOR, weight, footprints=footprints,
-                          anchor_target=target)
+        return fit.footprint_steps(start, n, share, weight, footprints, target)
 
     if share and opts.anchor_weight > 0 and sharing.material_of[0] is not None and FOOTPRINT_FREE_STEPS > 0:
         # the sharing's materials were estimated on the pixel-centre residuals, biased wherever a pixel
@@ -351,10 +364,8 @@ def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float) -
     info = {"options": opts.to_dict(), "refined_from": "maps"}
     history = []
     if steps > 0:
-        theta, finfo = fit.refine(theta, steps, opts.cg_iterations if opts.cg_iterations is not None else 30,
-                                  opts.sharing if share else FOOTPRINT_TEXTURE_PRIOR,
-                                  opts.anchor_weight if share else 0.0, footprints=footprints)
-        info.update({f"footprint_{k.removeprefix('joint_')}": v for k, v in finfo.items()})
+        theta, finfo = fit.footprint_steps(theta, steps, share, opts.anchor_weight if share else 0.0, footprints)
+        info.update(_footprint_info(finfo))
         history = list(finfo["joint_history"])
     return finalize(model, layout, obs, theta, fit.groups, loss=opts.loss, delta=fit.delta,
                     observable_std=opts.observable_std, noise=fit.noise, history=history, iterations=0, t0=t0,
@@ -449,7 +460,7 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
         footprints = pixel_operator(footprints, T)      # built once for the footprint steps and the posterior
         theta, finfo = _footprint_stage(fit, theta, footprints, share, sharing)
         if finfo is not None:
-            info.update({f"footprint_{k.removeprefix('joint_')}": v for k, v in finfo.items()})
+            info.update(_footprint_info(finfo))
             history.append(finfo["joint_history"][-1])
     return finalize(model, layout, obs, theta, groups, loss=opts.loss, delta=delta,
                      observable_std=opts.observable_std, noise=fit.noise, history=history, iterations=it, t0=t0,
