@@ -257,9 +257,26 @@ class Observations:
         ``L_s = Σ_pairs E·V · model.cosine_brdf(angles, p_s)`` (+ environment terms), accumulated
         with ``index_add``; differentiable (reverse and forward mode) with respect to ``params``.
         """
-        envs = [(light, idx, idx, self.n[idx], self.v[idx]) for light, idx in self.env_terms]
-        return radiance_sum(model, params, self.n_samples,
-                            [(self.pair_sample, self.pair_sample, self.angles, self.irradiance)], envs)
+        return self.predict_rows(model, params, 0, self.n_samples)
+
+    def predict_rows(self, model: Model, params: Mapping[str, Tensor], start: int, stop: int) -> Tensor:
+        """Predicted radiance ``[stop − start, 3]`` of the samples ``start … stop − 1`` from their canonical
+        parameters ``name → [stop − start, C]``: :meth:`predict` on a block of samples, for sums whose autograd
+        graph would be too large over all of them at once (:func:`capture.fit.texel.jacobian_blocks`)."""
+        if not 0 <= start <= stop <= self.n_samples:
+            raise ObservationError(f"predict_rows: need 0 ≤ start ≤ stop ≤ {self.n_samples}, got {start}, {stop}")
+        if start == 0 and stop == self.n_samples:
+            pairs = [(self.pair_sample, self.pair_sample, self.angles, self.irradiance)]
+            envs = [(light, idx, idx, self.n[idx], self.v[idx]) for light, idx in self.env_terms]
+        else:
+            (q,) = torch.nonzero((self.pair_sample >= start) & (self.pair_sample < stop), as_tuple=True)
+            local = self.pair_sample[q] - start
+            pairs = [(local, local, self.angles[q], self.irradiance[q])]
+            envs = []
+            for light, idx in self.env_terms:
+                idx = idx[(idx >= start) & (idx < stop)]
+                envs.append((light, idx - start, idx - start, self.n[idx], self.v[idx]))
+        return radiance_sum(model, params, stop - start, pairs, envs)
 
     # -- subsets and casts --------------------------------------------------------------------
     def select(self, keep: Tensor) -> Observations:

@@ -549,10 +549,12 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     lam = 1e-3
     cost = total_of(theta)
     history, accepted = [cost / data.n_res], []
+    system = J = w = g = B = None
     for it in range(iterations):
         with torch.no_grad():
             canon = layout.canonical(theta)
             dp = layout.dcanonical(theta)
+            system = J = w = g = B = None   # the last step's system freed before the new linearisation
             r, J = data.linearise(canon)
             if units is not None and it >= 1:
                 units.update(r, data.y)

@@ -4,6 +4,7 @@ pixel footprints (pixels × texels, :class:`PixelOperator`)."""
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -12,7 +13,7 @@ from torch import Tensor
 from materials.model import Model
 
 from .layout import ACC, Layout, SolverError
-from .texel import jacobian
+from .texel import JACOBIAN_BLOCK, jacobian_blocks
 
 __all__ = ["CsrPattern", "csr_matrix", "sampling_operator", "PixelJacobian", "PixelOperator", "pixel_operator",
            "AFFINE_TOL", "NORMAL_BLOCK"]
@@ -26,21 +27,79 @@ AFFINE_TOL = 1e-5
 #: in the allocator's reuse instead of fresh pages (the whole-array version took 1.8 s of page faults per call on
 #: the 256² Mitsuba sphere, the blocked one 0.1 s).
 NORMAL_BLOCK = 1 << 16
+#: Entries per block when values are placed into, or read back from, the Jacobian's matrices
+#: (:class:`_Placement`): [2¹⁸, 9] int64 places are 19 MB of temporaries.
+PLACE_BLOCK = 1 << 18
 
 
 class PixelJacobian(NamedTuple):
     """The pixel predictions' Jacobian at one linearisation. Of the entries' blocks ``C [E, 3, P]`` only the
-    (channel, parameter) pairs ``(cs[j], ps[j])`` some sample depends on are kept, as values ``V [E, k]``, and the
-    same values as sparse CSR matrices ``A [3R, P·T]`` (pixel-channel rows, texel-parameter columns) and ``At`` its
-    transpose, so that ``J u`` and ``Jᵀ v`` are one sparse product each (10× faster than a gather, a batched
-    3 × P product and a sparse sum over the entries: 6–9 against 60–110 ms on the 256² Mitsuba torus,
-    1.45 M entries, 2 threads)."""
+    (channel, parameter) pairs ``(cs[j], ps[j])`` some sample depends on are kept (GGX + Lambert: 9 of 21), as
+    the sparse CSR matrix ``A [3R, P·T]`` (rows pixel·3 + channel, columns texel·P + parameter) and its transpose
+    ``At [P·T, 3R]``, so that ``J u`` and ``Jᵀ v`` are one sparse product each (10× faster than a gather, a
+    batched 3 × P product and a sparse sum over the entries: 6–9 against 60–110 ms on the 256² Mitsuba torus,
+    1.45 M entries, 2 threads). Where each value sits in either matrix follows from the entries' pixel and
+    texel counts (:class:`_Placement`), so no permutation of the values is stored, and the values are not kept a
+    third time: the normal equations' blocks read them back from ``A``. GGX + Lambert in float32: 152 bytes per
+    (pixel, texel) entry (two 32-bit columns and values for each of 9 pairs, and each entry's texel in texel
+    order), against 288 with the two sort permutations and a float64 copy of the values."""
 
-    V: Tensor
     cs: Tensor
     ps: Tensor
     A: Tensor
     At: Tensor
+
+
+class _Placement(NamedTuple):
+    """Where value ``(e, j)`` of the entries' values ``V [E, k]`` sits in a CSR matrix whose rows are
+    ``(group, part)``: a group is a pixel (``A``: the parts are the channels) or a texel (``At``: the parameters),
+    its entries consecutive in the order ``order`` (None: the entries' own order, by pixel), and row
+    ``(g, part)`` holds the values of the group's entries at the columns ``j`` of that part, entry by entry. The
+    place is ``crow[g]·k + n_g·off[part] + (position − crow[g])·size[part] + rank[j]`` — arithmetic on the
+    group's row pointer ``crow`` and count ``n_g`` — instead of a stored permutation of all E·k values (36 bytes
+    per entry of GGX + Lambert in 32 bits, for each matrix)."""
+
+    crow: Tensor            # [G + 1] int64 the groups' first positions
+    group: Tensor           # [E] int64 the group of each position
+    order: Tensor | None    # [E] the entry at each position (None: the identity)
+    part_size: Tensor       # [parts] int64 columns per part
+    part_off: Tensor        # [parts] int64 offset of each part among a group's values per entry
+    col_part: Tensor        # [k] int64 each column's part
+    col_rank: Tensor        # [k] int64 each column's rank in its part
+
+    @classmethod
+    def of(cls, crow: Tensor, group: Tensor, order: Tensor | None, col_part: Tensor, parts: int) -> _Placement:
+        size = torch.bincount(col_part, minlength=parts)
+        rank = torch.tensor([int((col_part[:j] == col_part[j]).sum()) for j in range(col_part.numel())],
+                            dtype=torch.long, device=col_part.device)
+        return cls(crow.long(), group, order, size, torch.cumsum(size, 0) - size, col_part, rank)
+
+    def place(self, a: int, b: int) -> Tensor:
+        """``[b − a, k]`` int64 places of the values of the positions ``a … b − 1``."""
+        g = self.group[a:b]
+        start = self.crow[g]
+        n = self.crow[g + 1] - start
+        pos = torch.arange(a, b, device=g.device) - start
+        k = self.col_part.numel()
+        return (start[:, None] * k + n[:, None] * self.part_off[self.col_part][None]
+                + pos[:, None] * self.part_size[self.col_part][None] + self.col_rank[None])
+
+    def row_pointers(self) -> Tensor:
+        """``[G·parts + 1]`` int64 row pointers of the rows ``(group, part)``, group-major."""
+        k = self.col_part.numel()
+        n = self.crow[1:] - self.crow[:-1]
+        starts = (self.crow[:-1, None] * k + n[:, None] * self.part_off[None]).reshape(-1)
+        return torch.cat([starts, self.crow[-1:] * k])
+
+    def scatter(self, rows: Callable[[Tensor], Tensor], out: Tensor) -> Tensor:
+        """``out`` (flat, ``[E·k]``) with each entry's values at their places, ``rows(entries)`` giving the
+        ``[n, k]`` values of the entries ``entries [n]`` (int64), block by block."""
+        E = int(self.crow[-1])
+        for a in range(0, E, PLACE_BLOCK):
+            b = min(a + PLACE_BLOCK, E)
+            entries = torch.arange(a, b, device=out.device) if self.order is None else self.order[a:b]
+            out[self.place(a, b).reshape(-1)] = rows(entries).reshape(-1).to(out.dtype)
+        return out
 
 
 def sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True) -> tuple[Tensor | None, Tensor]:
@@ -147,7 +206,7 @@ class PixelOperator:
         # each entry's share of its pixel (Σ over a pixel's entries = 1): how much of the pixel the texel is
         self.e_share = torch.zeros(E, dtype=ACC, device=dev).index_add_(0, e_sorted, coef[perm])
         self.y = fp.radiance.to(ACC)
-        self._pattern = None            # the sparsity pattern of the Jacobian's blocks and its sort orders
+        self._pattern = None            # the Jacobian matrices' index arrays and value placements
         self._affine = None             # (canon, pred, J) once the model is found affine in its parameters
         self._affine_checked = False
         self._blocks = None             # (V, w, blocks) of the last normal(), reused while both are unchanged
@@ -174,10 +233,21 @@ class PixelOperator:
         if self._affine is not None:
             canon0, pred0, J = self._affine
             return pred0 + self.apply(J, canon - canon0)
+        return self.group_op @ self._sample_radiance(model, layout, canon)
+
+    def _sample_radiance(self, model: Model, layout: Layout, canon: Tensor) -> Tensor:
+        """``[S, 3]`` the samples' radiance at canonical texel parameters ``canon [T, P]``, evaluated in blocks of
+        :data:`JACOBIAN_BLOCK` samples so that the model's temporaries stay bounded whatever the capture's size
+        (32 × 256² photos, 2.2 M samples, GGX + Lambert: 0.44–0.64 GB above the result at once, 0.12–0.25 GB in
+        blocks, in the same time)."""
         so = self.fp.samples
+        phi = self.gather_op @ canon
+        rad = torch.empty(so.n_samples, 3, dtype=ACC, device=canon.device)
         with torch.no_grad():
-            rad = so.predict(model, layout.split((self.gather_op @ canon).to(so.dtype))).to(ACC)
-        return self.group_op @ rad
+            for a in range(0, so.n_samples, JACOBIAN_BLOCK):
+                b = min(a + JACOBIAN_BLOCK, so.n_samples)
+                rad[a:b] = so.predict_rows(model, layout.split(phi[a:b].to(so.dtype)), a, b)
+        return rad
 
     def linearise(self, model: Model, layout: Layout, canon: Tensor, groups) -> tuple[Tensor, PixelJacobian]:
         """``(pred [R, 3], J)`` at ``canon [T, P]``: the pixel predictions and their Jacobian
@@ -190,13 +260,8 @@ class PixelOperator:
         if self._affine is not None:
             return self.predict(model, layout, canon), self._affine[2]
         P = canon.shape[1]
-        pred_s, Js = jacobian(model, layout, self.fp.samples, self.gather_op @ canon, groups, canonical=True)
-        # only the (channel, parameter) pairs some sample depends on go through the corner sums (GGX + Lambert:
-        # 9 of 21, the albedo and f0 act on their own channel)
-        mask = (Js != 0).any(0)
-        cs, ps = torch.nonzero(mask, as_tuple=True)
-        Jc = Js[:, cs, ps]
-        del Js
+        self._blocks = None             # (the last linearisation's blocks and Jacobian freed before the new ones)
+        pred_s, Jc, mask = self._sample_jacobian(model, layout, canon, groups)
         V = self.corner_op @ Jc
         del Jc
         pred = self.group_op @ pred_s
@@ -207,59 +272,95 @@ class PixelOperator:
             if free and all(s.linear for s in layout.specs):
                 # other values: half of each parameter (inside every range that holds 0 and the value)
                 other = 0.5 * canon
-                so = self.fp.samples
-                with torch.no_grad():
-                    direct = self.group_op @ so.predict(model, layout.split((self.gather_op @ other).to(so.dtype))
-                                                        ).to(ACC)
+                direct = self.group_op @ self._sample_radiance(model, layout, other)
                 linear = pred + self.apply(J, other - canon)
                 scale = float(pred.abs().max()) + 1e-30
                 if float((direct - linear).abs().max()) <= AFFINE_TOL * scale:
                     self._affine = (canon.clone(), pred, J)
         return pred, J
 
+    def _sample_jacobian(self, model: Model, layout: Layout, canon: Tensor, groups) -> tuple[Tensor, Tensor, Tensor]:
+        """``(pred [S, 3], Jc [S, k], mask [3, P])``: the samples' predictions and, of their Jacobian, only the
+        ``k`` (channel, parameter) pairs of ``mask`` that some sample depends on (GGX + Lambert: 9 of 21, the
+        albedo and f0 act on their own channel), block by block (:func:`jacobian_blocks`) so that neither the
+        whole ``[S, 3, P]`` Jacobian nor the whole autograd graph is ever held."""
+        so = self.fp.samples
+        phi = self.gather_op @ canon
+        S, P = phi.shape
+        pred = torch.empty(S, 3, dtype=ACC, device=phi.device)
+        parts = []                                      # (start, stop, that block's mask, its kept columns)
+        mask = torch.zeros(3, P, dtype=torch.bool, device=phi.device)
+        for a, b, pb, Jb in jacobian_blocks(model, layout, so, phi, groups, canonical=True, block=JACOBIAN_BLOCK):
+            pred[a:b] = pb
+            m = (Jb != 0).any(0)
+            mask |= m
+            cs, ps = torch.nonzero(m, as_tuple=True)
+            parts.append((a, b, m, Jb[:, cs, ps]))
+            del Jb
+        del phi
+        # the union of the blocks' pairs; a block that lacks some of them has zeros there
+        Jc = torch.zeros(S, int(mask.sum()), dtype=ACC, device=pred.device)
+        where = torch.cumsum(mask.reshape(-1), 0).reshape(3, P) - 1
+        while parts:
+            a, b, m, vals = parts.pop(0)
+            Jc[a:b, where[m]] = vals
+        return pred, Jc, mask
+
     def _jacobian(self, V: Tensor, mask: Tensor, P: int) -> PixelJacobian:
-        """The sparse ``[3R, P·T]`` matrix of the entries' values ``V [E, k]`` at the (channel, parameter) pairs of
-        ``mask [3, P]`` (the pairs some sample depends on; Lambert's albedo: the diagonal, a third of the block) and
-        its transpose. The sorting permutations depend on that pattern only and are kept across linearisations."""
+        """The :class:`PixelJacobian` of the entries' values ``V [E, k]`` at the (channel, parameter) pairs of
+        ``mask [3, P]`` (the pairs some sample depends on; Lambert's albedo: the diagonal, a third of the block).
+        The matrices' index arrays depend on that pattern only and are kept across linearisations."""
         key = tuple(mask.reshape(-1).tolist())
         if self._pattern is None or self._pattern[0] != key:
+            self._pattern = None                # (the old index arrays freed before the new ones are built)
             cs, ps = torch.nonzero(mask, as_tuple=True)
-            rows = (self.e_pix[:, None] * 3 + cs[None]).reshape(-1)
-            cols = (self.e_tex[:, None] * P + ps[None]).reshape(-1)
+            itype = torch.int32 if max(3 * self.R, P * self.T, V.numel()) < 2 ** 31 else torch.long
+            perm = self.tex_op.col_indices().long()             # the entries in texel order
+            by_pix = _Placement.of(self.pix_op.crow_indices(), self.e_pix, None, cs, 3)
+            by_tex = _Placement.of(self.tex_op.crow_indices(), self.e_tex[perm], perm, ps, P)
+            col_a = by_pix.scatter(lambda e: self.e_tex[e][:, None] * P + ps[None],
+                                   torch.empty(V.numel(), dtype=itype, device=V.device))
+            col_t = by_tex.scatter(lambda e: self.e_pix[e][:, None] * 3 + cs[None],
+                                   torch.empty(V.numel(), dtype=itype, device=V.device))
             # the pairs of kept values on the same channel: the terms of the per-texel blocks Σ_c C_cp w_c C_cq
             # (each unordered pair once: the blocks are symmetric)
             order = torch.arange(len(cs), device=cs.device)
             i, j = torch.nonzero((cs[:, None] == cs[None, :]) & (order[:, None] <= order[None, :]), as_tuple=True)
-            self._pattern = (key, cs, ps, CsrPattern.of(rows, cols, (3 * self.R, P * self.T)),
-                             CsrPattern.of(cols, rows, (P * self.T, 3 * self.R)),
-                             (i, j, ps[i] * P + ps[j], ps[j] * P + ps[i]))
-        _, cs, ps, by_row, by_col, _ = self._pattern
+            self._pattern = (key, cs, ps, by_pix, by_tex, (by_pix.row_pointers().to(itype), col_a),
+                             (by_tex.row_pointers().to(itype), col_t), (i, j, ps[i] * P + ps[j], ps[j] * P + ps[i]))
+        _, cs, ps, by_pix, by_tex, a_idx, t_idx, _ = self._pattern
         # the values in the precision the model was evaluated in: float32 evaluations make float32 values, whose
         # products read half the bytes (with 32-bit indices 5.2 against 7.7 ms per product of 4.4 M non-zeros)
-        vals = V.reshape(-1).to(self.fp.samples.dtype if self.fp.samples.dtype == torch.float32 else V.dtype)
-        return PixelJacobian(V, cs, ps, by_row.matrix(vals), by_col.matrix(vals))
+        vdt = self.fp.samples.dtype if self.fp.samples.dtype == torch.float32 else V.dtype
+        rows = lambda e: torch.index_select(V, 0, e)  # noqa: E731
+        A = csr_matrix(*a_idx, by_pix.scatter(rows, V.new_empty(V.numel(), dtype=vdt)), (3 * self.R, P * self.T))
+        At = csr_matrix(*t_idx, by_tex.scatter(rows, V.new_empty(V.numel(), dtype=vdt)), (P * self.T, 3 * self.R))
+        return PixelJacobian(cs, ps, A, At)
 
     def normal(self, J: PixelJacobian, w: Tensor, wr: Tensor) -> tuple[Tensor, Tensor]:
         """``(Jᵀ W r [T, P], blocks Σ_i C_itᵀ W_i C_it [T, P, P])`` with residual weights ``w [R, 3]`` and
         ``wr = w·r [R, 3]``. The blocks sum only the products of kept values on the same channel (GGX + Lambert:
-        27 of the 147 of the dense 3 × 7 blocks)."""
-        i, j, pq, qp = self._pattern[5]
-        P = J.A.shape[1] // self.T
+        27 of the 147 of the dense 3 × 7 blocks), whose values are read back from ``A``."""
+        i, j, pq, qp = self._pattern[7]
+        by_pix = self._pattern[3]
+        P = J.At.shape[0] // self.T
         cached = self._blocks
         # the same Jacobian (an affine model's) with the same weights (L2: all ones) has the same blocks
-        if cached is not None and cached[0] is J.V and torch.equal(cached[1], w):
+        if cached is not None and cached[0] is J and torch.equal(cached[1], w):
             return self.apply_t(J, wr), cached[2]
+        vals = J.A.values()
         # Σ over a texel's entries of V_i w V_j, in blocks of entries: the [E, pairs] products whole are 300 MB
         # (GGX + Lambert at 256²) that cost more to allocate than to fill
         terms = torch.zeros(self.T, len(i), dtype=ACC, device=w.device)
         for a in range(0, self.E, NORMAL_BLOCK):
-            V = J.V[a:a + NORMAL_BLOCK].to(ACC)
-            Vw = V * w[self.e_pix[a:a + NORMAL_BLOCK]][:, J.cs]
-            terms.index_add_(0, self.e_tex[a:a + NORMAL_BLOCK], Vw[:, i] * V[:, j])
+            b = min(a + NORMAL_BLOCK, self.E)
+            V = vals[by_pix.place(a, b)].to(ACC)
+            Vw = V * w[self.e_pix[a:b]][:, J.cs]
+            terms.index_add_(0, self.e_tex[a:b], Vw[:, i] * V[:, j])
         off = pq != qp                  # (a parameter pair repeats over channels: roughness with itself on each)
         B = torch.zeros(self.T, P * P, dtype=terms.dtype, device=terms.device).index_add_(1, pq, terms)
         B = B.index_add_(1, qp[off], terms[:, off]).reshape(self.T, P, P)
-        self._blocks = (J.V, w, B)
+        self._blocks = (J, w, B)
         return self.apply_t(J, wr), B
 
     def apply(self, J: PixelJacobian, u: Tensor) -> Tensor:

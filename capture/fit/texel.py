@@ -18,7 +18,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import NamedTuple
 
 import torch
@@ -33,7 +33,8 @@ from ..observations import Observations
 from .layout import ACC, MAX_STEP, Layout, SolverError, bounded, from_canonical
 from .noise import check_loss, irls_weights, robust_rho
 
-__all__ = ["BILINEAR_LM_TOL", "BILINEAR_LM_MIN", "check_inputs", "init_theta", "separable", "jacobian",
+__all__ = ["BILINEAR_LM_TOL", "BILINEAR_LM_MIN", "check_inputs", "init_theta", "separable", "JACOBIAN_BLOCK",
+           "jacobian_blocks", "jacobian",
            "sample_cost", "texel_cost", "weighted_cost", "data_cost", "grid_values", "linear_solve",
            "closed_form_init", "per_texel_lm"]
 
@@ -86,33 +87,56 @@ def separable(model: Model, spec: ParamSpec, dtype) -> bool:
     return bool(jo[:, 1:].abs().max() <= 1e-9 * (jo[:, :1].abs().max() + 1e-30))
 
 
+#: Samples per block of :func:`jacobian_blocks`: the autograd graph of one evaluation holds ~0.68 kB per sample
+#: (GGX + Lambert, float32: 1.5 GB above the Jacobian for 2.2 M samples at once), so blocks of 2¹⁸ samples bound
+#: it near 180 MB whatever the capture's size — and run faster in cache (those 2.2 M samples: 2.0–2.5 s against
+#: 3.7–3.9 s at once; 2¹⁷ 2.2 s, 2¹⁹ 2.7 s).
+JACOBIAN_BLOCK = 1 << 18
+
+
+def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups, canonical: bool = False,
+                    block: int = JACOBIAN_BLOCK) -> Iterator[tuple[int, int, Tensor, Tensor]]:
+    """``(start, stop, pred [n, 3], J [n, 3, P])`` for blocks of ``block`` samples of :func:`jacobian`: the
+    same values, with the autograd graph of one block alive at a time (:data:`JACOBIAN_BLOCK`)."""
+    if block < 1:
+        raise SolverError(f"block must be a positive number of samples, got {block!r}")
+    S, P = phi.shape
+    unpack = layout.split if canonical else layout.unpack
+    cols = sorted({c for cs in groups for c in cs})
+    for a in range(0, max(S, 1), block):
+        b = min(a + block, S)
+        J = torch.zeros(b - a, 3, P, dtype=ACC, device=phi.device)
+        with torch.enable_grad():
+            x = phi[a:b].detach().to(obs.dtype).requires_grad_(bool(cols))
+            pred = obs.predict_rows(model, unpack(x), a, b)
+            if cols and pred.requires_grad:
+                for c in range(3):
+                    (g,) = torch.autograd.grad(pred[:, c].sum(), x, retain_graph=c < 2, allow_unused=True)
+                    if g is not None:
+                        J[:, c, cols] = g[:, cols].to(ACC)
+        yield a, b, pred.detach().to(ACC), J
+
+
 def jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups,
-              canonical: bool = False) -> tuple[Tensor, Tensor]:
+             canonical: bool = False) -> tuple[Tensor, Tensor]:
     """Prediction ``[S, 3]`` and Jacobian ``[S, 3, P]`` wrt per-sample θ ``phi [S, P]`` by reverse-mode AD.
 
     A sample's prediction depends only on its own parameters, so the gradient of ``Σ_s pred_sc`` with
     respect to ``phi`` holds row s of ``∂pred_c/∂phi`` for every sample: one evaluation and three backward
-    passes (one per colour channel) give the whole Jacobian. The columns of ``groups`` (:func:`param_groups`) are
-    filled, the others are zero (frozen parameters). Measured on the default scene (204 000 samples, P = 7,
-    2 threads): 132–144 ms against 196–321 ms for one forward-mode (dual tensor) pass per group — in torch
-    2.13 binary ops on dual tensors run Python reference implementations, and the first one imports
-    ``torch._dynamo`` (~1 s per process).
+    passes (one per colour channel) give the whole Jacobian, in blocks of samples (:func:`jacobian_blocks`). The
+    columns of ``groups`` (:func:`param_groups`) are filled, the others are zero (frozen parameters). Measured on
+    the default scene (204 000 samples, P = 7, 2 threads): 132–144 ms against 196–321 ms for one forward-mode
+    (dual tensor) pass per group — in torch 2.13 binary ops on dual tensors run Python reference
+    implementations, and the first one imports ``torch._dynamo`` (~1 s per process).
 
     ``canonical=True``: ``phi`` holds canonical values and the Jacobian is with respect to them.
     """
     S, P = phi.shape
-    unpack = layout.split if canonical else layout.unpack
-    cols = sorted({c for cs in groups for c in cs})
+    pred = torch.zeros(S, 3, dtype=ACC, device=phi.device)
     J = torch.zeros(S, 3, P, dtype=ACC, device=phi.device)
-    with torch.enable_grad():
-        x = phi.detach().to(obs.dtype).requires_grad_(bool(cols))
-        pred = obs.predict(model, unpack(x))
-        if cols and pred.requires_grad:
-            for c in range(3):
-                (g,) = torch.autograd.grad(pred[:, c].sum(), x, retain_graph=c < 2, allow_unused=True)
-                if g is not None:
-                    J[:, c, cols] = g[:, cols].to(ACC)
-    return pred.detach().to(ACC), J
+    for a, b, pb, Jb in jacobian_blocks(model, layout, obs, phi, groups, canonical):
+        pred[a:b], J[a:b] = pb, Jb
+    return pred, J
 
 
 def sample_cost(obs: Observations, pred: Tensor, loss: str, delta: float) -> Tensor:

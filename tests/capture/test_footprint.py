@@ -17,7 +17,7 @@ from capture.footprint import (
     saving,
     texture_footprints,
 )
-from capture.observations import observe_views
+from capture.observations import ObservationError, observe_views
 from capture.synth import build_scene, render_scene, small_scene
 from renderer.camera import look_at
 from renderer.gbuffer import render_gbuffer
@@ -106,6 +106,52 @@ def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx):
         e = torch.zeros(T * T, layout.P, dtype=torch.float64)
         e[t, p] = 1.0
         assert torch.allclose(op.apply_t(C, op.apply(C, e))[t], B[t, :, p], rtol=1e-10, atol=1e-14)
+
+
+def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatch):
+    """The operator evaluates the samples' Jacobian and radiance in blocks of samples and places the values in its
+    matrices block by block (bounded memory): with blocks of a few dozen samples / entries — many blocks, ragged
+    ends — the predictions, products and per-texel blocks equal those of one block each (float64)."""
+    import capture.fit.operators as ops
+
+    sc, fp, _, T = ggx
+    model, layout = sc.model, Layout.of(sc.model)
+    sel = fp.select(torch.arange(fp.n_pixels) % 3 == 0)
+    sel.samples = sel.samples.to(dtype=torch.float64)
+    gen = torch.Generator().manual_seed(3)
+    canon = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    u = torch.randn(T * T, layout.P, generator=gen, dtype=torch.float64)
+    v = torch.randn(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
+    w = torch.rand(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
+
+    def run():
+        op = PixelOperator(sel, T * T)
+        pred, C = op.linearise(model, layout, canon, param_groups(layout))
+        g, B = op.normal(C, w, w * v)
+        return pred, op.predict(model, layout, canon * 0.9), op.apply(C, u), op.apply_t(C, v), g, B
+
+    whole = run()
+    assert sel.n_samples > 1000 and PixelOperator(sel, T * T).E > 1000
+    monkeypatch.setattr(ops, "JACOBIAN_BLOCK", 97)
+    monkeypatch.setattr(ops, "PLACE_BLOCK", 61)
+    monkeypatch.setattr(ops, "NORMAL_BLOCK", 53)
+    for a, b in zip(whole, run(), strict=True):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-15 * float(a.abs().max()))
+
+
+def test_predict_rows_is_predict_on_a_block_of_samples(ggx):
+    """Observations.predict_rows over consecutive ranges gives predict's rows; a range outside the samples is
+    refused with the bounds."""
+    sc, fp, _, T = ggx
+    so = fp.samples
+    per = so.per_sample(sc.maps, "bilinear")
+    whole = so.predict(sc.model, per)
+    cuts = [0, 1, so.n_samples // 3, so.n_samples // 3, so.n_samples]
+    parts = [so.predict_rows(sc.model, {k: x[a:b] for k, x in per.items()}, a, b)
+             for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    assert torch.equal(torch.cat(parts), whole)
+    with pytest.raises(ObservationError, match="start ≤ stop"):
+        so.predict_rows(sc.model, per, 5, so.n_samples + 1)
 
 
 def test_an_affine_model_is_linearised_once():
