@@ -54,6 +54,7 @@ from torch import Tensor
 from materials import KnownParams
 from materials.params import CANONICAL, preview_transfer
 from materials.roughness import half_max_angle, roughness_to_alpha
+from renderer.device import release_memory
 from renderer.gbuffer import check_psf_sigma
 
 from .fit import (
@@ -784,6 +785,7 @@ def _observe(data: _Loaded, preps: list, solver: str, sampling: str | None, text
         if obs.n_samples == 0:
             raise ReconstructionError(f"the views left to fit ({data.fit_views}) have no valid sample; hold out "
                                       f"fewer views (holdout={data.held_views})")
+    release_memory()                    # (the per-view pieces concatenated above)
     return _Observed(photos, all_lights, texture_size, sampling, dtype, options, pooled_auto, psf, observe, footprints,
                      all_obs, obs, held_obs, fp_all, fp, held_fp)
 

@@ -25,7 +25,7 @@ from typing import TypeVar
 
 import torch
 
-__all__ = ["DEVICES", "DeviceError", "resolve_device", "per_view"]
+__all__ = ["DEVICES", "DeviceError", "resolve_device", "per_view", "release_memory"]
 
 _R = TypeVar("_R")
 _PARALLEL = threading.Lock()
@@ -103,12 +103,16 @@ def per_view(work: Callable[[int], _R], n: int, done: Callable[[], None] | None 
                 return out
         finally:
             torch.set_num_threads(threads)
-            _trim()
+            release_memory()
 
 
-def _trim() -> None:
-    """Return the memory the worker threads freed to the system (glibc keeps a heap per thread, and what a finished
-    worker's heap holds would otherwise stay in the process's peak memory); nothing where there is no glibc."""
+def release_memory() -> None:
+    """Return the host memory that freed tensors left in the C allocator's heaps to the system: glibc keeps a heap
+    per thread (a finished worker's would otherwise stay in the process's peak memory), and tensors below its mmap
+    threshold, freed between large ones, fragment them. Called between the stages of a long job: on 32 × 256²
+    photos the footprint solve began with 1.1 GB of such memory (3.2 GB resident, 2.1 GB after this). Not in inner
+    loops: the pages come back as page faults (before each footprint step it cost 31 → 35 s on 8 × 256² photos).
+    Nothing where there is no glibc."""
     trim = _malloc_trim()
     if trim is not None:
         trim(0)

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from materials.model import Model
+from renderer.device import release_memory
 
 from ..observations import Observations
 from .joint import refine_joint
@@ -457,6 +458,7 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
         info.update(jinfo)
         history.append(jinfo["joint_history"][-1])
     if footprints is not None:
+        release_memory()                                # (what the pixel-centre stages freed, before the largest)
         footprints = pixel_operator(footprints, T)      # built once for the footprint steps and the posterior
         theta, finfo = _footprint_stage(fit, theta, footprints, share, sharing)
         if finfo is not None:

@@ -74,15 +74,14 @@ class _Placement(NamedTuple):
                             dtype=torch.long, device=col_part.device)
         return cls(crow.long(), group, order, size, torch.cumsum(size, 0) - size, col_part, rank)
 
-    def place(self, a: int, b: int) -> Tensor:
-        """``[b − a, k]`` int64 places of the values of the positions ``a … b − 1``."""
-        g = self.group[a:b]
+    def place(self, pos: Tensor) -> Tensor:
+        """``[n, k]`` int64 places of the values at the positions ``pos [n]`` (int64)."""
+        g = self.group[pos]
         start = self.crow[g]
         n = self.crow[g + 1] - start
-        pos = torch.arange(a, b, device=g.device) - start
         k = self.col_part.numel()
         return (start[:, None] * k + n[:, None] * self.part_off[self.col_part][None]
-                + pos[:, None] * self.part_size[self.col_part][None] + self.col_rank[None])
+                + (pos - start)[:, None] * self.part_size[self.col_part][None] + self.col_rank[None])
 
     def row_pointers(self) -> Tensor:
         """``[G·parts + 1]`` int64 row pointers of the rows ``(group, part)``, group-major."""
@@ -97,8 +96,9 @@ class _Placement(NamedTuple):
         E = int(self.crow[-1])
         for a in range(0, E, PLACE_BLOCK):
             b = min(a + PLACE_BLOCK, E)
-            entries = torch.arange(a, b, device=out.device) if self.order is None else self.order[a:b]
-            out[self.place(a, b).reshape(-1)] = rows(entries).reshape(-1).to(out.dtype)
+            pos = torch.arange(a, b, device=out.device)
+            out[self.place(pos).reshape(-1)] = rows(pos if self.order is None else self.order[a:b]).reshape(-1).to(
+                out.dtype)
         return out
 
 
@@ -262,10 +262,9 @@ class PixelOperator:
         P = canon.shape[1]
         self._blocks = None             # (the last linearisation's blocks and Jacobian freed before the new ones)
         pred_s, Jc, mask = self._sample_jacobian(model, layout, canon, groups)
-        V = self.corner_op @ Jc
-        del Jc
         pred = self.group_op @ pred_s
-        J = self._jacobian(V, mask, P)
+        J = self._jacobian(Jc, mask, P)
+        del Jc
         if not self._affine_checked:
             self._affine_checked = True
             free = sorted({c for cs in groups for c in cs}) == list(range(P))
@@ -306,22 +305,26 @@ class PixelOperator:
             Jc[a:b, where[m]] = vals
         return pred, Jc, mask
 
-    def _jacobian(self, V: Tensor, mask: Tensor, P: int) -> PixelJacobian:
-        """The :class:`PixelJacobian` of the entries' values ``V [E, k]`` at the (channel, parameter) pairs of
-        ``mask [3, P]`` (the pairs some sample depends on; Lambert's albedo: the diagonal, a third of the block).
-        The matrices' index arrays depend on that pattern only and are kept across linearisations."""
+    def _jacobian(self, Jc: Tensor, mask: Tensor, P: int) -> PixelJacobian:
+        """The :class:`PixelJacobian` of the samples' Jacobian ``Jc [S, k]`` at the (channel, parameter) pairs of
+        ``mask [3, P]`` (the pairs some sample depends on; Lambert's albedo: the diagonal, a third of the block):
+        the entries' values ``V = corner_op · Jc`` ``[E, k]``, made block by block of entries straight into their
+        places in ``A`` and read from there into ``At`` (V whole would be 72 bytes per entry more at the peak). The
+        matrices' index arrays depend on the pattern only and are kept across linearisations."""
         key = tuple(mask.reshape(-1).tolist())
+        E, k = self.E, Jc.shape[1]
+        dev = Jc.device
         if self._pattern is None or self._pattern[0] != key:
             self._pattern = None                # (the old index arrays freed before the new ones are built)
             cs, ps = torch.nonzero(mask, as_tuple=True)
-            itype = torch.int32 if max(3 * self.R, P * self.T, V.numel()) < 2 ** 31 else torch.long
+            itype = torch.int32 if max(3 * self.R, P * self.T, E * k) < 2 ** 31 else torch.long
             perm = self.tex_op.col_indices().long()             # the entries in texel order
             by_pix = _Placement.of(self.pix_op.crow_indices(), self.e_pix, None, cs, 3)
             by_tex = _Placement.of(self.tex_op.crow_indices(), self.e_tex[perm], perm, ps, P)
             col_a = by_pix.scatter(lambda e: self.e_tex[e][:, None] * P + ps[None],
-                                   torch.empty(V.numel(), dtype=itype, device=V.device))
+                                   torch.empty(E * k, dtype=itype, device=dev))
             col_t = by_tex.scatter(lambda e: self.e_pix[e][:, None] * 3 + cs[None],
-                                   torch.empty(V.numel(), dtype=itype, device=V.device))
+                                   torch.empty(E * k, dtype=itype, device=dev))
             # the pairs of kept values on the same channel: the terms of the per-texel blocks Σ_c C_cp w_c C_cq
             # (each unordered pair once: the blocks are symmetric)
             order = torch.arange(len(cs), device=cs.device)
@@ -331,11 +334,17 @@ class PixelOperator:
         _, cs, ps, by_pix, by_tex, a_idx, t_idx, _ = self._pattern
         # the values in the precision the model was evaluated in: float32 evaluations make float32 values, whose
         # products read half the bytes (with 32-bit indices 5.2 against 7.7 ms per product of 4.4 M non-zeros)
-        vdt = self.fp.samples.dtype if self.fp.samples.dtype == torch.float32 else V.dtype
-        rows = lambda e: torch.index_select(V, 0, e)  # noqa: E731
-        A = csr_matrix(*a_idx, by_pix.scatter(rows, V.new_empty(V.numel(), dtype=vdt)), (3 * self.R, P * self.T))
-        At = csr_matrix(*t_idx, by_tex.scatter(rows, V.new_empty(V.numel(), dtype=vdt)), (P * self.T, 3 * self.R))
-        return PixelJacobian(cs, ps, A, At)
+        vdt = self.fp.samples.dtype if self.fp.samples.dtype == torch.float32 else Jc.dtype
+        a_vals = torch.empty(E * k, dtype=vdt, device=dev)
+        crow, col, cval = self.corner_op.crow_indices(), self.corner_op.col_indices(), self.corner_op.values()
+        for a in range(0, E, PLACE_BLOCK):
+            b = min(a + PLACE_BLOCK, E)
+            lo, hi = int(crow[a]), int(crow[b])
+            rows = csr_matrix(crow[a:b + 1] - lo, col[lo:hi], cval[lo:hi], (b - a, Jc.shape[0]))
+            a_vals[by_pix.place(torch.arange(a, b, device=dev)).reshape(-1)] = (rows @ Jc).reshape(-1).to(vdt)
+        t_vals = by_tex.scatter(lambda e: a_vals[by_pix.place(e)], torch.empty(E * k, dtype=vdt, device=dev))
+        return PixelJacobian(cs, ps, csr_matrix(*a_idx, a_vals, (3 * self.R, P * self.T)),
+                             csr_matrix(*t_idx, t_vals, (P * self.T, 3 * self.R)))
 
     def normal(self, J: PixelJacobian, w: Tensor, wr: Tensor) -> tuple[Tensor, Tensor]:
         """``(Jᵀ W r [T, P], blocks Σ_i C_itᵀ W_i C_it [T, P, P])`` with residual weights ``w [R, 3]`` and
@@ -354,7 +363,7 @@ class PixelOperator:
         terms = torch.zeros(self.T, len(i), dtype=ACC, device=w.device)
         for a in range(0, self.E, NORMAL_BLOCK):
             b = min(a + NORMAL_BLOCK, self.E)
-            V = vals[by_pix.place(a, b)].to(ACC)
+            V = vals[by_pix.place(torch.arange(a, b, device=w.device))].to(ACC)
             Vw = V * w[self.e_pix[a:b]][:, J.cs]
             terms.index_add_(0, self.e_tex[a:b], Vw[:, i] * V[:, j])
         off = pq != qp                  # (a parameter pair repeats over channels: roughness with itself on each)
