@@ -589,14 +589,18 @@ class _TexelLM:
     def _normal(self, sub: Observations, sgroups) -> tuple[Tensor, Tensor]:
         """Per-texel normal equations ``JᵀWJ [T, P, P]`` and ``JᵀWr [T, P]`` of the samples ``sub`` (IRLS weights)."""
         T, P = self.obs.n_texels, self.layout.P
-        pred_s, J = jacobian(self.model, self.layout, sub, torch.index_select(self.theta, 0, sub.texel), sgroups)
-        r = sub.radiance.to(ACC) - pred_s
-        wgt = sub.weight.to(ACC)[:, None] * irls_weights(r, self.loss, self.delta)
-        Jw = J * wgt[..., None]
-        JtJ = torch.zeros(T, P, P, dtype=ACC, device=self.obs.device).index_add(
-            0, sub.texel, torch.einsum("scp,scq->spq", Jw, J))
-        Jtr = torch.zeros(T, P, dtype=ACC, device=self.obs.device).index_add(
-            0, sub.texel, torch.einsum("scp,sc->sp", Jw, r))
+        JtJ = torch.zeros(T, P, P, dtype=ACC, device=self.obs.device)
+        Jtr = torch.zeros(T, P, dtype=ACC, device=self.obs.device)
+        # block by block of samples: the Jacobian, its weighted copy and the [S, P, P] products whole raised the
+        # resident memory by 0.9 GB on the 1.6 M pixel centres of 32 × 512² photos; blocked, the per-texel LM also
+        # runs faster (32 × 256²: 5.5 → 3.5 s, the same fit to the last bit)
+        phi = torch.index_select(self.theta, 0, sub.texel)
+        for a, b, pred_s, J in jacobian_blocks(self.model, self.layout, sub, phi, sgroups):
+            r = sub.radiance[a:b].to(ACC) - pred_s
+            wgt = sub.weight[a:b].to(ACC)[:, None] * irls_weights(r, self.loss, self.delta)
+            Jw = J * wgt[..., None]
+            JtJ.index_add_(0, sub.texel[a:b], torch.einsum("scp,scq->spq", Jw, J))
+            Jtr.index_add_(0, sub.texel[a:b], torch.einsum("scp,sc->sp", Jw, r))
         return JtJ, Jtr
 
     def _damped_step(self, JtJ: Tensor, Jtr: Tensor, d: Tensor, scale: Tensor, free: Tensor,
