@@ -549,7 +549,6 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     lam = 1e-3
     cost = total_of(theta)
     history, accepted = [cost / data.n_res], []
-    system = J = w = g = B = None
     for it in range(iterations):
         with torch.no_grad():
             canon = layout.canonical(theta)

@@ -90,15 +90,14 @@ class _Placement(NamedTuple):
         starts = (self.crow[:-1, None] * k + n[:, None] * self.part_off[None]).reshape(-1)
         return torch.cat([starts, self.crow[-1:] * k])
 
-    def scatter(self, rows: Callable[[Tensor], Tensor], out: Tensor) -> Tensor:
-        """``out`` (flat, ``[E·k]``) with each entry's values at their places, ``rows(entries)`` giving the
-        ``[n, k]`` values of the entries ``entries [n]`` (int64), block by block."""
+    def scatter(self, rows: Callable[[int, int], Tensor], out: Tensor) -> Tensor:
+        """``out`` (flat, ``[E·k]``) with each entry's values at their places, block by block of positions:
+        ``rows(a, b)`` gives the ``[b − a, k]`` values of the entries at the positions ``a … b − 1`` (the entries
+        ``a … b − 1`` themselves when ``order`` is None, else ``order[a:b]``)."""
         E = int(self.crow[-1])
         for a in range(0, E, PLACE_BLOCK):
             b = min(a + PLACE_BLOCK, E)
-            pos = torch.arange(a, b, device=out.device)
-            out[self.place(pos).reshape(-1)] = rows(pos if self.order is None else self.order[a:b]).reshape(-1).to(
-                out.dtype)
+            out[self.place(torch.arange(a, b, device=out.device)).reshape(-1)] = rows(a, b).reshape(-1).to(out.dtype)
         return out
 
 
@@ -209,7 +208,7 @@ class PixelOperator:
         self._pattern = None            # the Jacobian matrices' index arrays and value placements
         self._affine = None             # (canon, pred, J) once the model is found affine in its parameters
         self._affine_checked = False
-        self._blocks = None             # (V, w, blocks) of the last normal(), reused while both are unchanged
+        self._blocks = None             # (J, w, blocks) of the last normal(), reused while both are unchanged
 
     def observed(self) -> Tensor:
         """``[T]`` bool: texels some kept pixel reads with a positive weight."""
@@ -321,9 +320,9 @@ class PixelOperator:
             perm = self.tex_op.col_indices().long()             # the entries in texel order
             by_pix = _Placement.of(self.pix_op.crow_indices(), self.e_pix, None, cs, 3)
             by_tex = _Placement.of(self.tex_op.crow_indices(), self.e_tex[perm], perm, ps, P)
-            col_a = by_pix.scatter(lambda e: self.e_tex[e][:, None] * P + ps[None],
+            col_a = by_pix.scatter(lambda a, b: self.e_tex[a:b, None] * P + ps[None],
                                    torch.empty(E * k, dtype=itype, device=dev))
-            col_t = by_tex.scatter(lambda e: self.e_pix[e][:, None] * 3 + cs[None],
+            col_t = by_tex.scatter(lambda a, b: self.e_pix[perm[a:b], None] * 3 + cs[None],
                                    torch.empty(E * k, dtype=itype, device=dev))
             # the pairs of kept values on the same channel: the terms of the per-texel blocks Σ_c C_cp w_c C_cq
             # (each unordered pair once: the blocks are symmetric)
@@ -335,14 +334,16 @@ class PixelOperator:
         # the values in the precision the model was evaluated in: float32 evaluations make float32 values, whose
         # products read half the bytes (with 32-bit indices 5.2 against 7.7 ms per product of 4.4 M non-zeros)
         vdt = self.fp.samples.dtype if self.fp.samples.dtype == torch.float32 else Jc.dtype
-        a_vals = torch.empty(E * k, dtype=vdt, device=dev)
         crow, col, cval = self.corner_op.crow_indices(), self.corner_op.col_indices(), self.corner_op.values()
-        for a in range(0, E, PLACE_BLOCK):
-            b = min(a + PLACE_BLOCK, E)
+
+        def values(a: int, b: int) -> Tensor:        # V of the entries a … b − 1: their rows of corner_op · Jc
             lo, hi = int(crow[a]), int(crow[b])
-            rows = csr_matrix(crow[a:b + 1] - lo, col[lo:hi], cval[lo:hi], (b - a, Jc.shape[0]))
-            a_vals[by_pix.place(torch.arange(a, b, device=dev)).reshape(-1)] = (rows @ Jc).reshape(-1).to(vdt)
-        t_vals = by_tex.scatter(lambda e: a_vals[by_pix.place(e)], torch.empty(E * k, dtype=vdt, device=dev))
+            return csr_matrix(crow[a:b + 1] - lo, col[lo:hi], cval[lo:hi], (b - a, Jc.shape[0])) @ Jc
+
+        a_vals = by_pix.scatter(values, torch.empty(E * k, dtype=vdt, device=dev))
+        perm = by_tex.order
+        t_vals = by_tex.scatter(lambda a, b: a_vals[by_pix.place(perm[a:b])],
+                                torch.empty(E * k, dtype=vdt, device=dev))
         return PixelJacobian(cs, ps, csr_matrix(*a_idx, a_vals, (3 * self.R, P * self.T)),
                              csr_matrix(*t_idx, t_vals, (P * self.T, 3 * self.R)))
 
