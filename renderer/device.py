@@ -25,13 +25,18 @@ from typing import TypeVar
 
 import torch
 
-__all__ = ["DEVICES", "DeviceError", "resolve_device", "per_view", "release_memory"]
+__all__ = ["DEVICES", "DeviceError", "resolve_device", "per_view", "release_memory", "CUDA_BLOCK_FACTOR", "block_size"]
 
 _R = TypeVar("_R")
 _PARALLEL = threading.Lock()
 
 #: the spellings ``--device`` accepts (``cuda:N`` picks a GPU by index as well)
 DEVICES = ("auto", "cpu", "cuda")
+#: How many times larger the solver's blocks of samples and entries are on a GPU than on the CPU
+#: (:func:`block_size`). The CPU's sizes keep temporaries in cache and memory bounded; on an H100 their launches
+#: left the GPU idle: 32 × 512² photos (GGX + Lambert) fitted in 12.4–13.2 s with the CPU's blocks, 6.9 s with
+#: 16× larger ones (CUDA peak 7.5 → 8.5 GB), 6.7 s with 128× (11.5 GB) — the same maps.
+CUDA_BLOCK_FACTOR = 16
 
 
 class DeviceError(ValueError):
@@ -116,6 +121,14 @@ def release_memory() -> None:
     trim = _malloc_trim()
     if trim is not None:
         trim(0)
+
+
+def block_size(cpu_block: int, device: torch.device | str) -> int:
+    """The size of a block of work (samples, entries) on ``device``: ``cpu_block``, the size chosen for the CPU,
+    times :data:`CUDA_BLOCK_FACTOR` on a GPU."""
+    if isinstance(cpu_block, bool) or not isinstance(cpu_block, int) or cpu_block < 1:
+        raise ValueError(f"block size must be a positive integer, got {cpu_block!r}")
+    return cpu_block * CUDA_BLOCK_FACTOR if torch.device(device).type == "cuda" else cpu_block
 
 
 @functools.cache

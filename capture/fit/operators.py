@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from materials.model import Model
+from renderer.device import block_size
 
 from .layout import ACC, Layout, SolverError
 from .texel import JACOBIAN_BLOCK, jacobian_blocks
@@ -25,7 +26,8 @@ __all__ = ["CsrPattern", "csr_matrix", "sampling_operator", "PixelJacobian", "Pi
 AFFINE_TOL = 1e-5
 #: Entries per block of :meth:`PixelOperator.normal`'s sums: 2¹⁶ × 18 pairs × 8 bytes = 9 MB temporaries, which stay
 #: in the allocator's reuse instead of fresh pages (the whole-array version took 1.8 s of page faults per call on
-#: the 256² Mitsuba sphere, the blocked one 0.1 s).
+#: the 256² Mitsuba sphere, the blocked one 0.1 s). This and the other block sizes are the CPU's; on a GPU they are
+#: :data:`renderer.device.CUDA_BLOCK_FACTOR` times larger (:func:`renderer.device.block_size`).
 NORMAL_BLOCK = 1 << 16
 #: Entries per block when values are placed into, or read back from, the Jacobian's matrices
 #: (:class:`_Placement`): [2¹⁸, 9] int64 places are 19 MB of temporaries.
@@ -94,9 +96,9 @@ class _Placement(NamedTuple):
         """``out`` (flat, ``[E·k]``) with each entry's values at their places, block by block of positions:
         ``rows(a, b)`` gives the ``[b − a, k]`` values of the entries at the positions ``a … b − 1`` (the entries
         ``a … b − 1`` themselves when ``order`` is None, else ``order[a:b]``)."""
-        E = int(self.crow[-1])
-        for a in range(0, E, PLACE_BLOCK):
-            b = min(a + PLACE_BLOCK, E)
+        E, step = int(self.crow[-1]), block_size(PLACE_BLOCK, out.device)
+        for a in range(0, E, step):
+            b = min(a + step, E)
             out[self.place(torch.arange(a, b, device=out.device)).reshape(-1)] = rows(a, b).reshape(-1).to(out.dtype)
         return out
 
@@ -243,8 +245,9 @@ class PixelOperator:
         phi = self.gather_op @ canon
         rad = torch.empty(so.n_samples, 3, dtype=ACC, device=canon.device)
         with torch.no_grad():
-            for a in range(0, so.n_samples, JACOBIAN_BLOCK):
-                b = min(a + JACOBIAN_BLOCK, so.n_samples)
+            step = block_size(JACOBIAN_BLOCK, canon.device)
+            for a in range(0, so.n_samples, step):
+                b = min(a + step, so.n_samples)
                 rad[a:b] = so.predict_rows(model, layout.split(phi[a:b].to(so.dtype)), a, b)
         return rad
 
@@ -288,7 +291,8 @@ class PixelOperator:
         pred = torch.empty(S, 3, dtype=ACC, device=phi.device)
         parts = []                                      # (start, stop, that block's mask, its kept columns)
         mask = torch.zeros(3, P, dtype=torch.bool, device=phi.device)
-        for a, b, pb, Jb in jacobian_blocks(model, layout, so, phi, groups, canonical=True, block=JACOBIAN_BLOCK):
+        for a, b, pb, Jb in jacobian_blocks(model, layout, so, phi, groups, canonical=True,
+                                              block=block_size(JACOBIAN_BLOCK, phi.device)):
             pred[a:b] = pb
             m = (Jb != 0).any(0)
             mask |= m
@@ -362,8 +366,9 @@ class PixelOperator:
         # Σ over a texel's entries of V_i w V_j, in blocks of entries: the [E, pairs] products whole are 300 MB
         # (GGX + Lambert at 256²) that cost more to allocate than to fill
         terms = torch.zeros(self.T, len(i), dtype=ACC, device=w.device)
-        for a in range(0, self.E, NORMAL_BLOCK):
-            b = min(a + NORMAL_BLOCK, self.E)
+        step = block_size(NORMAL_BLOCK, w.device)
+        for a in range(0, self.E, step):
+            b = min(a + step, self.E)
             V = vals[by_pix.place(torch.arange(a, b, device=w.device))].to(ACC)
             Vw = V * w[self.e_pix[a:b]][:, J.cs]
             terms.index_add_(0, self.e_tex[a:b], Vw[:, i] * V[:, j])

@@ -28,6 +28,7 @@ from torch import Tensor
 from materials.geometry import Angles
 from materials.model import Model, SumModel
 from materials.params import ParamSpec
+from renderer.device import block_size
 
 from ..observations import Observations
 from .layout import ACC, MAX_STEP, Layout, SolverError, bounded, from_canonical
@@ -95,9 +96,12 @@ JACOBIAN_BLOCK = 1 << 18
 
 
 def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups, canonical: bool = False,
-                    block: int = JACOBIAN_BLOCK) -> Iterator[tuple[int, int, Tensor, Tensor]]:
+                    block: int | None = None) -> Iterator[tuple[int, int, Tensor, Tensor]]:
     """``(start, stop, pred [n, 3], J [n, 3, P])`` for blocks of ``block`` samples of :func:`jacobian`: the
-    same values, with the autograd graph of one block alive at a time (:data:`JACOBIAN_BLOCK`)."""
+    same values, with the autograd graph of one block alive at a time (default :data:`JACOBIAN_BLOCK` on the CPU,
+    :func:`renderer.device.block_size` of it on a GPU)."""
+    if block is None:
+        block = block_size(JACOBIAN_BLOCK, phi.device)
     if block < 1:
         raise SolverError(f"block must be a positive number of samples, got {block!r}")
     S, P = phi.shape

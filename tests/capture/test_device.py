@@ -94,3 +94,14 @@ def test_per_view_keeps_the_order_ticks_in_order_and_restores_the_thread_count()
             per_view(lambda i: 1 // (i - 1), 3)
     finally:
         torch.set_num_threads(threads)
+
+
+def test_block_sizes_grow_on_a_gpu_only():
+    from renderer.device import CUDA_BLOCK_FACTOR, block_size
+
+    assert block_size(1 << 18, "cpu") == 1 << 18
+    assert block_size(97, torch.device("cpu")) == 97
+    assert block_size(97, "cuda") == 97 * CUDA_BLOCK_FACTOR > 97      # a device name: no GPU needed to ask
+    for bad in (0, -3, 2.5, True, "8"):
+        with pytest.raises(ValueError, match="positive integer"):
+            block_size(bad, "cpu")
