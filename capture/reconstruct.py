@@ -356,19 +356,30 @@ def _auto_verdict(tried: list[dict], params, err: float, chi2: float, best_err: 
     return ("better" if dropped else "stop"), ""
 
 
-def _footprint_misfit(model, fit: FitResult, fp, obs: Observations, noise=NOISE) -> float:
+def _footprint_misfit(model, fit: FitResult, fp, obs: Observations, noise=NOISE, pred: Tensor | None = None) -> float:
     """:func:`_misfit` of the photos' pixels as the footprint operator predicts them (:mod:`capture.footprint`),
-    σ from the noise model at each pixel's value, scaled by the noise measured in image space (``obs``)."""
+    σ from the noise model at each pixel's value, scaled by the noise measured in image space (``obs``). ``pred``:
+    that prediction when it is already made (:func:`_fitted_prediction`)."""
     from .fit import noise_sigma
 
     y = fp.radiance.to(torch.float64)
     sigma = noise_sigma(y, noise) * math.sqrt(max(1.0, photo_noise_ratio(obs, noise) or 1.0))
+    if pred is None:
+        pred = _fitted_prediction(model, fit, obs, fp, "bilinear")
+    return float((((pred.to(torch.float64) - y) / sigma) ** 2).mean())
+
+
+def _fitted_prediction(model, fit: FitResult, obs: Observations, fp, sampling: str) -> Tensor:
+    """The fitted views' values as the fit models them, from the fit's own (raw) maps: pixels (area averages over
+    their footprints, ``[R, 3]``) when ``fp`` is given, else the samples ``[S, 3]`` of ``obs``. Made once and shared
+    by the χ² check and the views' re-renders (on 32 × 512² photos each made its own: 2 s apiece on 16 cores)."""
+    if fp is None:
+        return _render(model, fit.raw, obs, sampling)
     with torch.no_grad():
-        pred = fp.render(model, {k: v.to(fp.radiance.dtype) for k, v in fit.raw.items()}).to(torch.float64)
-    return float((((pred - y) / sigma) ** 2).mean())
+        return fp.render(model, {k: v.to(fp.radiance.dtype) for k, v in fit.raw.items()})
 
 
-def _misfit(model, fit: FitResult, obs: Observations, sampling: str, noise=NOISE) -> float:
+def _misfit(model, fit: FitResult, obs: Observations, sampling: str, noise=NOISE, pred: Tensor | None = None) -> float:
     """How well a fit explains the photos it was fitted to: the weighted mean over samples and channels of
     ``(r / σ)²``, ``r`` the residual of the fit's own (raw) maps and σ the photos' noise
     (:func:`capture.fit.noise.photo_sigma`: the 1 % noise model, scaled to the noise measured in image space where the
@@ -376,7 +387,9 @@ def _misfit(model, fit: FitResult, obs: Observations, sampling: str, noise=NOISE
     noise allows."""
     sigma = photo_sigma(obs, noise, photo_noise_ratio(obs, noise))
     w = obs.weight.to(sigma.dtype)
-    chi2 = (((_render(model, fit.raw, obs, sampling) - obs.radiance) / sigma) ** 2).sum(-1)
+    if pred is None:
+        pred = _fitted_prediction(model, fit, obs, None, sampling)
+    chi2 = (((pred - obs.radiance) / sigma) ** 2).sum(-1)
     return float((chi2 * w).sum() / (3 * w.sum()))
 
 
@@ -549,7 +562,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     report.model, report.model_spec = model, _model_spec(model)
     with _timed(times, "solve"):
         fitted = _final_fit(mdl, seen, fitter, data.fit_views, prog, report)
-    chi2 = _check_misfit(report, fitted, seen)
+    pred = _fitted_prediction(fitted.model, fitted.fit, seen.obs, seen.fp, seen.sampling)
+    chi2 = _check_misfit(report, fitted, seen, pred)
     known_maps = _known_maps(fitted.model, seen.obs.map_size)
     spt, vpt = seen.obs.samples_per_texel(), seen.obs.views_per_texel()
     _report_coverage(report, fitted.fit, seen, spt)
@@ -559,7 +573,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     with _timed(times, "metrics"):
         prog.start("metrics")
         _report_errors(report, data.ds, fitted, seen, known_maps)
-        renders = _rerender_views(report, data, fitted, seen)
+        renders = _rerender_views(report, data, fitted, seen, pred)
 
     report.memory = _peak_memory()
     _write_outputs(inputs.out_dir, data.ds, fitted.fit, seen.obs, renders, seen.photos, report, times, force,
@@ -1005,11 +1019,12 @@ def _final_fit(mdl, seen: _Observed, fitter: _Fitter, fit_views: list[int], prog
 # -- report on the fit ------------------------------------------------------------------------------
 
 
-def _check_misfit(report: Report, fitted: _Fitted, seen: _Observed) -> float:
-    """The final fit's χ² per residual (of the pixels when it fitted footprints); a warning above
-    :data:`UNEXPLAINED_CHI2`."""
+def _check_misfit(report: Report, fitted: _Fitted, seen: _Observed, pred: Tensor) -> float:
+    """The final fit's χ² per residual (of the pixels when it fitted footprints) from its prediction ``pred``
+    (:func:`_fitted_prediction`); a warning above :data:`UNEXPLAINED_CHI2`."""
     mdl, fit, fp, obs = fitted.model, fitted.fit, seen.fp, seen.obs
-    chi2 = _footprint_misfit(mdl, fit, fp, obs) if fp is not None else _misfit(mdl, fit, obs, seen.sampling)
+    chi2 = (_footprint_misfit(mdl, fit, fp, obs, pred=pred) if fp is not None
+            else _misfit(mdl, fit, obs, seen.sampling, pred=pred))
     if chi2 > UNEXPLAINED_CHI2:
         report.warnings.append(
             f"the fitted maps do not explain the photos: χ² per residual {chi2:.3g} against ≤ ~4 for photos explained "
@@ -1162,23 +1177,21 @@ def _report_errors(report: Report, ds: Dataset, fitted: _Fitted, seen: _Observed
     report.errors["gt_model"] = ds.gt.model
 
 
-def _rerender_views(report: Report, data: _Loaded, fitted: _Fitted, seen: _Observed) -> list[tuple]:
-    """Every view re-rendered, compared with its photo (``report.views``): the fitted views with the fitted values,
-    the held-out ones with the filled maps a user gets (texels only they see are unobserved in the fit). Returns
-    ``(view, image, mask)`` rows for the views pages, the held-out views first."""
+def _rerender_views(report: Report, data: _Loaded, fitted: _Fitted, seen: _Observed, pred: Tensor) -> list[tuple]:
+    """Every view re-rendered, compared with its photo (``report.views``): the fitted views with the fitted values
+    (``pred``, :func:`_fitted_prediction`), the held-out ones with the filled maps a user gets (texels only they see
+    are unobserved in the fit). Returns ``(view, image, mask)`` rows for the views pages, the held-out views first."""
     from .metrics import image_metrics
 
     fit, mdl, obs, held_obs, fp, held_fp = fitted.fit, fitted.model, seen.obs, seen.held_obs, seen.fp, seen.held_fp
     held_views, dtype = data.held_views, seen.dtype
     renders = []
     if fp is not None:
-        # the fitted views' pixels as the fit models them (area averages over their footprints)
+        # the held-out views' pixels as the fit models pixels (area averages over their footprints)
         with torch.no_grad():
-            pred = fp.render(mdl, {k: v.to(dtype) for k, v in fit.raw.items()})
             held_pred = held_fp.render(mdl, {k: v.to(dtype) for k, v in fit.maps.items()}) \
                 if held_fp is not None else None
     else:
-        pred = _render(mdl, fit.raw, obs, seen.sampling)
         held_pred = _render(mdl, fit.maps, held_obs, seen.sampling) if held_obs is not None else None
     for i, v in enumerate(data.ds.views):
         src, values = (held_obs, held_pred) if i in held_views else (obs, pred)
