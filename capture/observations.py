@@ -269,7 +269,10 @@ class Observations:
             pairs = [(self.pair_sample, self.pair_sample, self.angles, self.irradiance)]
             envs = [(light, idx, idx, self.n[idx], self.v[idx]) for light, idx in self.env_terms]
         else:
-            (q,) = torch.nonzero((self.pair_sample >= start) & (self.pair_sample < stop), as_tuple=True)
+            span = self._pair_span(start, stop)
+            # a slice (views, no copy) when the pairs are sorted by sample, else the block's pairs gathered
+            q = slice(*span) if span is not None else \
+                torch.nonzero((self.pair_sample >= start) & (self.pair_sample < stop), as_tuple=True)[0]
             local = self.pair_sample[q] - start
             pairs = [(local, local, self.angles[q], self.irradiance[q])]
             envs = []
@@ -277,6 +280,20 @@ class Observations:
                 idx = idx[(idx >= start) & (idx < stop)]
                 envs.append((light, idx - start, idx - start, self.n[idx], self.v[idx]))
         return radiance_sum(model, params, stop - start, pairs, envs)
+
+    def _pair_span(self, start: int, stop: int) -> tuple[int, int] | None:
+        """``(lo, hi)``: the pairs of the samples ``start … stop − 1`` as one range of pairs when the pairs are
+        sorted by sample (:func:`observe_views` sorts them; :meth:`select` keeps their order), else None. Whether
+        they are is checked once per ``pair_sample`` tensor."""
+        ps = self.pair_sample
+        known = getattr(self, "_pairs_sorted", None)
+        if known is None or known[0] is not ps:
+            known = (ps, ps.numel() < 2 or bool((ps[1:] >= ps[:-1]).all()))
+            self._pairs_sorted = known
+        if not known[1]:
+            return None
+        lo, hi = torch.searchsorted(ps, torch.tensor([start, stop], dtype=ps.dtype, device=ps.device)).tolist()
+        return lo, hi
 
     # -- subsets and casts --------------------------------------------------------------------
     def select(self, keep: Tensor) -> Observations:
@@ -534,6 +551,15 @@ def _concatenate(parts: list[dict], drops: dict, map_size: tuple[int, int], *, b
             k = id(light)
             envs_all.setdefault(k, (light, []))[1].append(idx + o)
     angles = Angles(*(torch.cat([getattr(a, f) for a in ang]) for f in ("nl", "nv", "nh", "lh", "lv")))
+    pair_sample, pair_light, irradiance = torch.cat(ps), torch.cat(pl), torch.cat(irr)
+    del ps, pl, ang, irr
+    if pair_sample.numel() > 1 and not bool((pair_sample[1:] >= pair_sample[:-1]).all()):
+        # the pairs sorted by sample (they come per view and light): a block of samples then reads one range of
+        # pairs, a slice, instead of a pass over every pair to select them (Observations.predict_rows)
+        order = torch.argsort(pair_sample, stable=True)
+        pair_sample, pair_light, irradiance, angles = pair_sample[order], pair_light[order], irradiance[order], \
+            angles[order]
+        del order
     view = torch.cat([torch.full((len(p["uv"]),), p["view"], dtype=torch.long) for p in parts]).to(uv.device)
     bi = bw = taps = None
     if bilinear and texels:
@@ -542,8 +568,8 @@ def _concatenate(parts: list[dict], drops: dict, map_size: tuple[int, int], *, b
         bi, bw = bilinear_weights(uv, H, W)
     return Observations(
         texel=texel_of(uv, H, W), map_size=(H, W), radiance=cat("radiance"),
-        weight=cat("weight").to(uv.device), pair_sample=torch.cat(ps),
-        pair_light=torch.cat(pl), angles=angles, irradiance=torch.cat(irr), view=view, pixel=cat("pixel"),
+        weight=cat("weight").to(uv.device), pair_sample=pair_sample,
+        pair_light=pair_light, angles=angles, irradiance=irradiance, view=view, pixel=cat("pixel"),
         uv=uv, n=cat("n"), v=cat("v"), bilinear_index=bi, bilinear_weight=bw, taps=taps,
         env_terms=[(light, torch.cat(idx)) for light, idx in envs_all.values()], drops=drops,
         n_views=len(parts), image_size=[p["size"] for p in parts], n_lights=n_lights,
