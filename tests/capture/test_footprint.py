@@ -1,5 +1,6 @@
 """Pixel footprints: the fit's image-formation operator against photos rendered with 8 × 8 jittered samples."""
 
+import copy
 import math
 
 import pytest
@@ -152,6 +153,18 @@ def test_predict_rows_is_predict_on_a_block_of_samples(ggx):
     assert torch.equal(torch.cat(parts), whole)
     with pytest.raises(ObservationError, match="start ≤ stop"):
         so.predict_rows(sc.model, per, 5, so.n_samples + 1)
+    # observe_views sorts the pairs by sample (a block reads a slice of them); pairs in any other order take the
+    # gathering path and give the same rows
+    ps = so.pair_sample
+    assert so.n_lights > 1 and bool((ps[1:] >= ps[:-1]).all())
+    shuffled = copy.copy(so)
+    perm = torch.randperm(so.n_pairs, generator=torch.Generator().manual_seed(3))
+    shuffled.pair_sample, shuffled.pair_light = ps[perm], so.pair_light[perm]
+    shuffled.angles, shuffled.irradiance = so.angles[perm], so.irradiance[perm]
+    assert not bool((shuffled.pair_sample[1:] >= shuffled.pair_sample[:-1]).all())
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        got = shuffled.predict_rows(sc.model, {k: x[a:b] for k, x in per.items()}, a, b)
+        assert torch.allclose(got, whole[a:b], rtol=1e-5, atol=1e-7)      # float32 sums over lights reordered
 
 
 def test_an_affine_model_is_linearised_once():
