@@ -107,17 +107,23 @@ def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor
     S, P = phi.shape
     unpack = layout.split if canonical else layout.unpack
     cols = sorted({c for cs in groups for c in cs})
+    frozen = [c for c in range(P) if c not in set(cols)]
     for a in range(0, max(S, 1), block):
         b = min(a + block, S)
-        J = torch.zeros(b - a, 3, P, dtype=ACC, device=phi.device)
         with torch.enable_grad():
             x = phi[a:b].detach().to(obs.dtype).requires_grad_(bool(cols))
             pred = obs.predict_rows(model, unpack(x), a, b)
             if cols and pred.requires_grad:
+                # each channel's gradient copied whole into its row (a plain slice), the frozen columns zeroed
+                # after: writing the kept columns through an index list took 1.8 s of 75 on 32 × 256² photos
+                J = torch.empty(b - a, 3, P, dtype=ACC, device=phi.device)
                 for c in range(3):
                     (g,) = torch.autograd.grad(pred[:, c].sum(), x, retain_graph=c < 2, allow_unused=True)
-                    if g is not None:
-                        J[:, c, cols] = g[:, cols].to(ACC)
+                    J[:, c] = 0.0 if g is None else g
+                if frozen:
+                    J[:, :, frozen] = 0.0
+            else:
+                J = torch.zeros(b - a, 3, P, dtype=ACC, device=phi.device)
         yield a, b, pred.detach().to(ACC), J
 
 
