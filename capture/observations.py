@@ -505,8 +505,9 @@ def _observe_view(vi: int, prep, photo: Tensor, settings: _ViewSettings, drops: 
 
 
 def _view_pairs(prep, ok: Tensor, local: Tensor, light_id: dict[int, int], dt) -> tuple[list, list]:
-    """The kept (sample, light) pairs of a view per light — ``(sample, light index, angles, E·V)`` — and its
-    environment terms ``(light, sample index)``, samples by their index ``local`` among the view's kept ones."""
+    """The kept (sample, light) pairs of a view — ``[(sample, light index, angles, E·V)]``, one group sorted by
+    sample — and its environment terms ``(light, sample index)``, samples by their index ``local`` among the
+    view's kept ones."""
     pairs = []
     for t in prep.lights:
         sel = ok[t.index]
@@ -516,6 +517,13 @@ def _view_pairs(prep, ok: Tensor, local: Tensor, light_id: dict[int, int], dt) -
         pairs.append((local[t.index[sel]], torch.full((int(sel.sum()),), lid, dtype=torch.long,
                                                        device=ok.device),
                       t.angles[sel].to(dtype=dt), t.irradiance[sel].to(dt)))
+    if len(pairs) > 1:
+        # the lights' pairs merged in sample order here, a view at a time, so that the views' pairs concatenated
+        # are sorted by sample with no permutation of all of them (Observations.predict_rows reads slices)
+        s = torch.cat([p[0] for p in pairs])
+        order = torch.argsort(s, stable=True)
+        angles = Angles(*(torch.cat([getattr(p[2], f) for p in pairs])[order] for f in ("nl", "nv", "nh", "lh", "lv")))
+        pairs = [(s[order], torch.cat([p[1] for p in pairs])[order], angles, torch.cat([p[3] for p in pairs])[order])]
     envs = []
     for e in prep.envs:
         sel = ok[e.index]
@@ -554,8 +562,9 @@ def _concatenate(parts: list[dict], drops: dict, map_size: tuple[int, int], *, b
     pair_sample, pair_light, irradiance = torch.cat(ps), torch.cat(pl), torch.cat(irr)
     del ps, pl, ang, irr
     if pair_sample.numel() > 1 and not bool((pair_sample[1:] >= pair_sample[:-1]).all()):
-        # the pairs sorted by sample (they come per view and light): a block of samples then reads one range of
-        # pairs, a slice, instead of a pass over every pair to select them (Observations.predict_rows)
+        # the pairs sorted by sample (each view's come sorted, _view_pairs; this is for views whose local sample
+        # indices are not increasing): a block of samples then reads one range of pairs, a slice, instead of a
+        # pass over every pair to select them (Observations.predict_rows)
         order = torch.argsort(pair_sample, stable=True)
         pair_sample, pair_light, irradiance, angles = pair_sample[order], pair_light[order], irradiance[order], \
             angles[order]
