@@ -107,7 +107,7 @@ def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor
     S, P = phi.shape
     unpack = layout.split if canonical else layout.unpack
     cols = sorted({c for cs in groups for c in cs})
-    frozen = [c for c in range(P) if c not in set(cols)]
+    frozen = sorted(set(range(P)) - set(cols))
     for a in range(0, max(S, 1), block):
         b = min(a + block, S)
         with torch.enable_grad():
