@@ -62,7 +62,7 @@ class _Placement(NamedTuple):
     per entry of GGX + Lambert in 32 bits, for each matrix)."""
 
     crow: Tensor            # [G + 1] int64 the groups' first positions
-    group: Tensor           # [E] int64 the group of each position
+    group: Tensor           # [E] the group of each position (int64 or int32)
     order: Tensor | None    # [E] the entry at each position (None: the identity)
     part_size: Tensor       # [parts] int64 columns per part
     part_off: Tensor        # [parts] int64 offset of each part among a group's values per entry
@@ -201,11 +201,16 @@ class PixelOperator:
         # samples → entries: each sample's texels (its texture footprint) and weights, repeated pairs summed
         crow = torch.zeros(E + 1, dtype=torch.long, device=dev)
         crow[1:] = counts.cumsum(0)
-        self.corner_op = csr_matrix(crow, t_s[perm], coef[perm], (E, S))
-        self.gather_op = _csr(t_s, t_idx, t_w, (S, T))                               # texels → samples
+        # the two sampling operators' values in the samples' precision (float32: 4 bytes per texture tap less
+        # each; the model reads its parameters in that precision anyway)
+        vdt = so.dtype if so.dtype.is_floating_point else ACC
+        self.corner_op = csr_matrix(crow, t_s[perm], coef[perm].to(vdt), (E, S))
+        self.gather_op = _csr(t_s, t_idx, t_w.to(vdt), (S, T))                       # texels → samples
         self.group_op = _csr(fp.group, torch.arange(S, device=dev), fp.share.to(ACC), (self.R, S))
         # each entry's share of its pixel (Σ over a pixel's entries = 1): how much of the pixel the texel is
         self.e_share = torch.zeros(E, dtype=ACC, device=dev).index_add_(0, e_sorted, coef[perm])
+        if max(self.R, T) < 2 ** 31:        # the entries' pixels and texels in 32 bits (indices only, no arithmetic)
+            self.e_pix, self.e_tex = self.e_pix.to(torch.int32), self.e_tex.to(torch.int32)
         self.y = fp.radiance.to(ACC)
         self._pattern = None            # the Jacobian matrices' index arrays and value placements
         self._affine = None             # (canon, pred, J) once the model is found affine in its parameters
@@ -221,7 +226,7 @@ class PixelOperator:
     def dominance(self) -> Tensor:
         """``[T]`` the largest share any kept pixel takes from each texel (0 where none reads it)."""
         return torch.zeros(self.T, dtype=ACC, device=self.y.device).scatter_reduce(
-            0, self.e_tex, self.e_share, "amax", include_self=True)
+            0, self.e_tex.long(), self.e_share, "amax", include_self=True)
 
     @property
     def affine(self) -> bool:
@@ -242,7 +247,7 @@ class PixelOperator:
         (32 × 256² photos, 2.2 M samples, GGX + Lambert: 0.44–0.64 GB above the result at once, 0.12–0.25 GB in
         blocks, in the same time)."""
         so = self.fp.samples
-        phi = self.gather_op @ canon
+        phi = self.gather_op @ canon.to(self.gather_op.dtype)
         rad = torch.empty(so.n_samples, 3, dtype=ACC, device=canon.device)
         with torch.no_grad():
             step = block_size(JACOBIAN_BLOCK, canon.device)
@@ -286,7 +291,7 @@ class PixelOperator:
         albedo and f0 act on their own channel), block by block (:func:`jacobian_blocks`) so that neither the
         whole ``[S, 3, P]`` Jacobian nor the whole autograd graph is ever held."""
         so = self.fp.samples
-        phi = self.gather_op @ canon
+        phi = self.gather_op @ canon.to(self.gather_op.dtype)
         S, P = phi.shape
         pred = torch.empty(S, 3, dtype=ACC, device=phi.device)
         parts = []                                      # (start, stop, that block's mask, its kept columns)
@@ -324,9 +329,9 @@ class PixelOperator:
             perm = self.tex_op.col_indices().long()             # the entries in texel order
             by_pix = _Placement.of(self.pix_op.crow_indices(), self.e_pix, None, cs, 3)
             by_tex = _Placement.of(self.tex_op.crow_indices(), self.e_tex[perm], perm, ps, P)
-            col_a = by_pix.scatter(lambda a, b: self.e_tex[a:b, None] * P + ps[None],
+            col_a = by_pix.scatter(lambda a, b: self.e_tex[a:b, None].long() * P + ps[None],
                                    torch.empty(E * k, dtype=itype, device=dev))
-            col_t = by_tex.scatter(lambda a, b: self.e_pix[perm[a:b], None] * 3 + cs[None],
+            col_t = by_tex.scatter(lambda a, b: self.e_pix[perm[a:b], None].long() * 3 + cs[None],
                                    torch.empty(E * k, dtype=itype, device=dev))
             # the pairs of kept values on the same channel: the terms of the per-texel blocks Σ_c C_cp w_c C_cq
             # (each unordered pair once: the blocks are symmetric)
@@ -342,7 +347,7 @@ class PixelOperator:
 
         def values(a: int, b: int) -> Tensor:        # V of the entries a … b − 1: their rows of corner_op · Jc
             lo, hi = int(crow[a]), int(crow[b])
-            return csr_matrix(crow[a:b + 1] - lo, col[lo:hi], cval[lo:hi], (b - a, Jc.shape[0])) @ Jc
+            return csr_matrix(crow[a:b + 1] - lo, col[lo:hi], cval[lo:hi].to(Jc.dtype), (b - a, Jc.shape[0])) @ Jc
 
         a_vals = by_pix.scatter(values, torch.empty(E * k, dtype=vdt, device=dev))
         perm = by_tex.order
