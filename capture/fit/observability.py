@@ -93,8 +93,8 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
             w = irls_weights(r, loss, delta) / noise_sigma(y, noise).square()
             _, A = op.normal(J, w, w * r)
             chi_e = (w * r * r).sum(-1)[op.e_pix] * op.e_share
-            chi = op.tex_op @ chi_e
-            nres = op.tex_op @ (3.0 * op.e_share)
+            chi = op.texel_sum(chi_e)
+            nres = op.texel_sum(3.0 * op.e_share)
             return _posterior_tail(A, chi, nres, obs, noise, P, y.device) + (pred,)
         if sampling == "bilinear":
             idx, bw = obs.bilinear_index, obs.bilinear_weight.to(ACC)

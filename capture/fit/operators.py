@@ -194,10 +194,14 @@ class PixelOperator:
         self.e_pix, self.e_tex = ekey // T, ekey % T
         E = int(ekey.numel())
         self.E = E
-        ar = torch.arange(E, device=dev)
-        ones = torch.ones(E, dtype=ACC, device=dev)
-        self.pix_op = _csr(self.e_pix, ar, ones, (self.R, E))                        # entries → pixels
-        self.tex_op = _csr(self.e_tex, ar, ones, (T, E))                             # entries → texels
+        # the entries by pixel (their own order) and by texel: row pointers, and the entries in texel order — the
+        # patterns of the Jacobian's two matrices (no values: sums over them are index_adds, texel_sum)
+        by_pix, by_tex = CsrPattern.of(self.e_pix, self.e_pix, (self.R, E)), CsrPattern.of(self.e_tex, self.e_tex,
+                                                                                            (T, E))
+        self.pix_crow = by_pix.crow
+        self.tex_crow, self.tex_order = by_tex.crow, (by_tex.order if by_tex.order is not None
+                                                      else torch.arange(E, device=dev))
+        del by_pix, by_tex
         # samples → entries: each sample's texels (its texture footprint) and weights, repeated pairs summed
         crow = torch.zeros(E + 1, dtype=torch.long, device=dev)
         crow[1:] = counts.cumsum(0)
@@ -222,6 +226,10 @@ class PixelOperator:
         seen = torch.zeros(self.T, dtype=torch.bool, device=self.y.device)
         seen[self.e_tex[self.e_share > 0]] = True
         return seen
+
+    def texel_sum(self, x: Tensor) -> Tensor:
+        """``[T]``: the sum over each texel's entries of the per-entry values ``x [E]``."""
+        return torch.zeros(self.T, dtype=x.dtype, device=x.device).index_add_(0, self.e_tex, x)
 
     def dominance(self) -> Tensor:
         """``[T]`` the largest share any kept pixel takes from each texel (0 where none reads it)."""
@@ -326,9 +334,9 @@ class PixelOperator:
             self._pattern = None                # (the old index arrays freed before the new ones are built)
             cs, ps = torch.nonzero(mask, as_tuple=True)
             itype = torch.int32 if max(3 * self.R, P * self.T, E * k) < 2 ** 31 else torch.long
-            perm = self.tex_op.col_indices().long()             # the entries in texel order
-            by_pix = _Placement.of(self.pix_op.crow_indices(), self.e_pix, None, cs, 3)
-            by_tex = _Placement.of(self.tex_op.crow_indices(), self.e_tex[perm], perm, ps, P)
+            perm = self.tex_order.long()                        # the entries in texel order
+            by_pix = _Placement.of(self.pix_crow, self.e_pix, None, cs, 3)
+            by_tex = _Placement.of(self.tex_crow, self.e_tex[perm], perm, ps, P)
             col_a = by_pix.scatter(lambda a, b: self.e_tex[a:b, None].long() * P + ps[None],
                                    torch.empty(E * k, dtype=itype, device=dev))
             col_t = by_tex.scatter(lambda a, b: self.e_pix[perm[a:b], None].long() * 3 + cs[None],
