@@ -517,10 +517,11 @@ def _view_pairs(prep, ok: Tensor, local: Tensor, light_id: dict[int, int], dt) -
         pairs.append((local[t.index[sel]], torch.full((int(sel.sum()),), lid, dtype=torch.long,
                                                        device=ok.device),
                       t.angles[sel].to(dtype=dt), t.irradiance[sel].to(dt)))
-    if len(pairs) > 1:
+    s = torch.cat([p[0] for p in pairs]) if pairs else None
+    if s is not None and (len(pairs) > 1 or not bool((s[1:] >= s[:-1]).all())):
         # the lights' pairs merged in sample order here, a view at a time, so that the views' pairs concatenated
-        # are sorted by sample with no permutation of all of them (Observations.predict_rows reads slices)
-        s = torch.cat([p[0] for p in pairs])
+        # (offset by view) are sorted by sample with no permutation of all of them: Observations.predict_rows then
+        # reads a block's pairs as one slice
         order = torch.argsort(s, stable=True)
         angles = Angles(*(torch.cat([getattr(p[2], f) for p in pairs])[order] for f in ("nl", "nv", "nh", "lh", "lv")))
         pairs = [(s[order], torch.cat([p[1] for p in pairs])[order], angles, torch.cat([p[3] for p in pairs])[order])]
@@ -559,16 +560,6 @@ def _concatenate(parts: list[dict], drops: dict, map_size: tuple[int, int], *, b
             k = id(light)
             envs_all.setdefault(k, (light, []))[1].append(idx + o)
     angles = Angles(*(torch.cat([getattr(a, f) for a in ang]) for f in ("nl", "nv", "nh", "lh", "lv")))
-    pair_sample, pair_light, irradiance = torch.cat(ps), torch.cat(pl), torch.cat(irr)
-    del ps, pl, ang, irr
-    if pair_sample.numel() > 1 and not bool((pair_sample[1:] >= pair_sample[:-1]).all()):
-        # the pairs sorted by sample (each view's come sorted, _view_pairs; this is for views whose local sample
-        # indices are not increasing): a block of samples then reads one range of pairs, a slice, instead of a
-        # pass over every pair to select them (Observations.predict_rows)
-        order = torch.argsort(pair_sample, stable=True)
-        pair_sample, pair_light, irradiance, angles = pair_sample[order], pair_light[order], irradiance[order], \
-            angles[order]
-        del order
     view = torch.cat([torch.full((len(p["uv"]),), p["view"], dtype=torch.long) for p in parts]).to(uv.device)
     bi = bw = taps = None
     if bilinear and texels:
@@ -577,8 +568,8 @@ def _concatenate(parts: list[dict], drops: dict, map_size: tuple[int, int], *, b
         bi, bw = bilinear_weights(uv, H, W)
     return Observations(
         texel=texel_of(uv, H, W), map_size=(H, W), radiance=cat("radiance"),
-        weight=cat("weight").to(uv.device), pair_sample=pair_sample,
-        pair_light=pair_light, angles=angles, irradiance=irradiance, view=view, pixel=cat("pixel"),
+        weight=cat("weight").to(uv.device), pair_sample=torch.cat(ps),
+        pair_light=torch.cat(pl), angles=angles, irradiance=torch.cat(irr), view=view, pixel=cat("pixel"),
         uv=uv, n=cat("n"), v=cat("v"), bilinear_index=bi, bilinear_weight=bw, taps=taps,
         env_terms=[(light, torch.cat(idx)) for light, idx in envs_all.values()], drops=drops,
         n_views=len(parts), image_size=[p["size"] for p in parts], n_lights=n_lights,
