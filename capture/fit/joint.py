@@ -564,11 +564,14 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                 cost = total_of(theta)
                 history[0] = cost / data.n_res
             system = _Normal.of(data, prior, canon, dp, J, w, g, B)
+            # the step's gain is measured against the cost under this iteration's objective: the units' update
+            # above re-weighs the prior, so the previous entry of the history may be of another objective
+            before = cost
             theta, cost, lam = _damped_step(system, theta, cost, lam, total_of, cg_iterations, accepted)
         history.append(cost / data.n_res)
         if progress is not None:
             progress("footprint" if data.pix is not None else "joint", it + 1, history[-1])
-        if len(history) > 1 and history[-2] - history[-1] <= 1e-6 * history[-2]:
+        if before - cost <= 1e-6 * before:
             break
     out = {"joint_s": time.perf_counter() - t0, "joint_history": history, "joint_accepted": accepted,
            "joint_sampling": "footprint" if data.pix is not None else sampling,

@@ -428,6 +428,28 @@ def test_refine_joint_rejects_bad_sharing_options():
                      noise_adaptive=["gloss"])
 
 
+def test_refinement_goes_on_when_the_noise_units_change_its_objective():
+    # the noise-adaptive units are updated from the second iteration on; the prior's energy under the new units can
+    # exceed the whole cost of the step before (here 0.021 → 0.33 per residual). The stopping rule must compare
+    # each step with the cost of its own objective: comparing with the previous entry of the history stopped this
+    # refinement after two of its five steps, every step being accepted
+    from capture.fit.joint import refine_joint
+    from capture.fit.layout import param_groups
+
+    model = materials.get("lambert")
+    g = torch.Generator().manual_seed(0)
+    albedo = 0.2 + 0.6 * torch.rand(6, 6, 3, generator=g, dtype=torch.float64)
+    obs = synthetic_observations(model, {"albedo": albedo}, samples_per_texel=2)
+    layout = Layout.of(model)
+    theta = torch.zeros(obs.n_texels, layout.P, dtype=torch.float64)
+    _, info = refine_joint(model, obs, layout, theta, param_groups(layout), loss="l2", delta=1.0, sampling="nearest",
+                           sharing=1.0, iterations=5, noise_adaptive=("albedo",))
+    h = info["joint_history"]
+    assert h[2] > h[1]                                   # the units' update raised the recorded cost
+    assert len(h) == 6 and info["joint_accepted"] == [True] * 5
+    assert all(b < a for a, b in zip(h[2:], h[3:]))     # and each later step lowered it
+
+
 def test_pooled_materials_recover_a_tile_lobe_that_no_single_texel_determines():
     # 8×8 texels in four 4×4 tiles; each tile one lobe (f0, roughness on the pooled fit's roughness grid), each
     # texel its own albedo. Three samples per texel, none near the mirror direction: one texel's samples cannot
