@@ -12,6 +12,7 @@ from capture.fit.layout import param_groups
 from capture.fit.operators import PixelOperator
 from capture.footprint import (
     FOOTPRINT_MAX,
+    FOOTPRINT_TEXTURE_MAX,
     FOOTPRINT_SPACING,
     footprint_counts,
     observe_footprints,
@@ -68,14 +69,14 @@ def test_sample_count_follows_the_texel_footprint():
     mesh = plane(size=2.0)
     cam = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_y_deg=30, width=40, height=40)
     g = render_gbuffer(mesh, cam, 1)
-    for T in (8, 64):
+    for T in (8, 64, 256):                         # f ≈ 0.16, 1.3 and 5.1 texels per pixel (the last capped)
         pixels, k, kt, f = footprint_counts(g, (T, T))
         H = cam.height
         inner = torch.isin(pixels, g.pixel) & ((pixels // H - H // 2).abs() < 5) & ((pixels % H - H // 2).abs() < 5)
         # pixel size on the plane: 2·d·tan(fov/2)/H world units, the plane 2 units wide: T/2 texels per unit
         f_true = 2 * 3.0 * math.tan(math.radians(15)) / H * T / 2.0
         assert torch.allclose(f[inner], torch.full_like(f[inner], f_true), rtol=1e-3)
-        k_true = min(max(math.ceil(f_true / FOOTPRINT_SPACING), 1), FOOTPRINT_MAX)
+        k_true = min(max(math.ceil(f_true / FOOTPRINT_SPACING), 1), FOOTPRINT_TEXTURE_MAX)
         assert (kt[inner] == k_true).all() and (k[inner] == 1).all()      # no photo: the shading needs one ray
     assert int(k.max()) == FOOTPRINT_MAX                                   # silhouette pixels
 
