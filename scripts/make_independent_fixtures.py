@@ -22,6 +22,7 @@ import argparse
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -50,18 +51,38 @@ LAMBERT = {"name": "lambert", "options": {}}
 
 @dataclass
 class FixtureScene:
-    """One independent scene: its name and the shadecap scene configuration it renders."""
+    """One independent scene: its name, the shadecap scene configuration it renders and, optionally, an albedo map
+    that replaces the configuration's (``albedo(size) -> [size, size, 3]``)."""
 
     name: str
     config: SyntheticConfig
     note: str = ""
+    albedo: Callable[[int], torch.Tensor] | None = None
+
+
+def fractal_albedo(size: int, seed: int = 10) -> torch.Tensor:
+    """A texture with detail at every scale, unlike the scene builder's piecewise-constant regions: per channel,
+    Gaussian noise with a power spectrum ∝ 1/f^1.6 (periodic, so the torus's seams match), a shared component for
+    the luminance, around a warm grey, ``[size, size, 3]`` in [0.03, 0.95]."""
+    rng = np.random.default_rng(seed)
+    f2 = np.fft.fftfreq(size)[:, None] ** 2 + np.fft.fftfreq(size)[None, :] ** 2
+    amp = np.where(f2 > 0, f2 ** -0.8, 0.0)
+
+    def noise() -> np.ndarray:
+        x = np.real(np.fft.ifft2(amp * (rng.normal(size=(size, size)) + 1j * rng.normal(size=(size, size)))))
+        return (x - x.mean()) / x.std()
+
+    shared = noise()
+    a = np.stack([base + 0.12 * noise() + 0.06 * shared for base in (0.55, 0.45, 0.35)], -1)
+    return torch.from_numpy(np.clip(a, 0.03, 0.95))
 
 
 def fixture_scenes(full: bool = False) -> list[FixtureScene]:
     """The scenes: small ones for ``tests/fixtures/mitsuba`` or, with ``full``, benchmark sizes.
 
     ``torus-lambert``: a torus (self-shadowing, concave parts) with a textured albedo, 2 flash
-    lights per view. ``sphere-ggx-lambert``: a UV sphere, Lambert + GGX with F = 1, 3 flash lights
+    lights per view; at benchmark sizes also ``torus-fractal-lambert``, the same with
+    :func:`fractal_albedo`. ``sphere-ggx-lambert``: a UV sphere, Lambert + GGX with F = 1, 3 flash lights
     per view 30° off the camera on three elevation rings, so highlights land on much of the sphere.
     """
     small_mesh = {"segments": 48, "rings": 24}
@@ -73,11 +94,15 @@ def fixture_scenes(full: bool = False) -> list[FixtureScene]:
     sphere = SyntheticConfig(mesh="uv_sphere", mesh_options={} if full else dict(small_mesh), model=GGX_LAMBERT_F1,
                              n_views=12, elevations=(-20.0, 20.0, 55.0), n_lights=3, light_offset_deg=30.0,
                              **common)
-    return [
+    scenes = [
         FixtureScene("torus-lambert", torus, "torus, textured Lambert albedo, 2 flash lights per view"),
         FixtureScene("sphere-ggx-lambert", sphere, "UV sphere, Lambert + GGX (separable Smith, F = 1), "
                                                    "3 flash lights per view"),
     ]
+    if full:
+        scenes.append(FixtureScene("torus-fractal-lambert", torus, "the torus with a fractal-noise Lambert albedo "
+                                   "(detail at every scale)", albedo=fractal_albedo))
+    return scenes
 
 
 # ----------------------------------------------------------------------------------------------
@@ -301,6 +326,9 @@ def make_fixture(fx: FixtureScene, out_dir: Path, spp: int, overwrite: bool = Tr
     mi = import_mitsuba()
     cfg = fx.config if views is None else replace(fx.config, n_views=views)
     scene: Scene = build_scene(cfg)
+    if fx.albedo is not None:
+        old = scene.maps["albedo"]
+        scene = replace(scene, maps={**scene.maps, "albedo": fx.albedo(old.shape[0]).to(old)})
     passes = bsdf_passes(mi, scene.model_spec, scene.maps)
     shapes = [mitsuba_mesh(mi, scene.mesh, bsdf, name=f"object-{name}") for name, bsdf in passes]
     images, seconds = [], []

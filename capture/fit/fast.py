@@ -68,12 +68,24 @@ FOOTPRINT_FREE_STEPS = 6
 #: Weight (the ``sharing`` scale of :func:`refine_joint`) of the edge-preserving neighbour prior in the footprint
 #: solve when no reflectance sharing runs (a Lambert model, or no material to share). Texels smaller than the pixels
 #: that see them are left free by the photos (the operator mixes them), and without a prior they keep the noise of
-#: the pixel-centre stages. Measured on the Mitsuba Lambert torus (tests/fixtures/mitsuba), RMSE of the albedo on
-#: well-lit texels / on those ≥ 1 pixel, with weights 0 / 1e-4 / 3e-4 / 1e-3 / 3e-3 / 1e-2: 0.0350 / 0.0167 / 0.0135 /
-#: 0.0119 / 0.0117 / 0.0122 and 0.0012 / 0.0012 / 0.0012 / 0.0012 / 0.0013 / 0.0018 (χ² per residual 0.26 → 0.18 at
-#: 1e-3); the shared models' weight (``sharing``, 1) gave χ² 89 there. On photos blurred by a Gaussian PSF
-#: (σ = 0.7 px) the prior is what makes the deconvolution stable: albedo 0.117 without it, 0.052 at 1e-3.
-FOOTPRINT_TEXTURE_PRIOR = 1e-3
+#: the pixel-centre stages. Measured with ``shadecap reconstruct --model lambert`` (2-core CPU), RMSE of the albedo on
+#: well-lit texels at weights 1e-3 / 3e-3 / 5e-3 / 1e-2 (docs/log.md, "the footprint prior's weight"):
+#:
+#: * Mitsuba torus, 12 × 256², 256² maps of stripes and a checker: 0.0106 / 0.0082 / 0.0076 / 0.0072 (χ² per
+#:   residual 0.17 / 0.18 / 0.19 / 0.21); the same torus with a fractal-noise albedo (``torus-fractal-lambert``):
+#:   0.0045 / 0.0038 / 0.0037 / 0.0037;
+#: * ``shadecap synth`` (8 × 8 jittered rays) Lambert torus with 3 000 e⁻ shot noise: 0.028 / 0.016 / 0.012 / 0.011;
+#:   blurred by a Gaussian PSF of σ = 0.7 px: 0.027 / 0.023 / 0.022 / 0.021; a Lambert sphere of 12 × 192²: 0.0117 /
+#:   0.0101 / 0.0097 / 0.0095;
+#: * where texels are larger than the pixels, which determine them, the prior only biases: the small Mitsuba torus
+#:   (tests/fixtures/mitsuba, 64² maps), on its texels of ≥ 1 pixel 0.0012 / 0.0013 / 0.0014 / 0.0017 (χ² 0.20 /
+#:   0.24 / 0.28 / 0.37); 4 views of 64 px on 32² maps blurred by the PSF (tests/capture/test_footprint.py), 0.054 /
+#:   0.059 / 0.061 at 1e-3 / 3e-3 / 5e-3.
+#:
+#: 3e-3 takes most of the gain where the photos leave texels free and little of the bias where they determine them.
+#: On photos blurred by a PSF the prior is what makes the deconvolution stable (the small scene: albedo 0.117
+#: without it).
+FOOTPRINT_TEXTURE_PRIOR = 3e-3
 
 
 #: The per-texel stages (closed form, LM, posterior, sharing) need samples in a texel to say anything about it: on

@@ -220,8 +220,8 @@ def test_gaussian_psf_in_the_pixel_filter_explains_blurred_photos(tmp_path):
     """Photos blurred by a Gaussian PSF (σ = 0.7 px; synthetic: the blur applied to the image of the 8 × 8 jittered
     strata, then the box — not the fit's quadrature) and written with ``psf_sigma`` in scene.json: reconstruct
     reads it and the footprints model it; fitted with the box alone (psf_sigma=0) the photos are not explained.
-    Measured (Lambert UV sphere, 4 views of 64 px, 32² maps): χ² per residual 0.40 against 22.9, albedo RMSE on
-    well-lit texels 0.052 against 0.070."""
+    Measured (Lambert UV sphere, 4 views of 64 px, 32² maps): χ² per residual 0.43 against 23.1, albedo RMSE on
+    well-lit texels 0.059 against 0.071."""
     from capture.dataset import load_dataset
     from capture.reconstruct import reconstruct
     from capture.synth import make_synthetic
