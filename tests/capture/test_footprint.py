@@ -12,8 +12,8 @@ from capture.fit.layout import param_groups
 from capture.fit.operators import PixelOperator
 from capture.footprint import (
     FOOTPRINT_MAX,
-    FOOTPRINT_TEXTURE_MAX,
     FOOTPRINT_SPACING,
+    FOOTPRINT_TEXTURE_MAX,
     footprint_counts,
     observe_footprints,
     saving,
