@@ -110,6 +110,24 @@ def test_sensor_mapping_of_an_opencv_camera(script):
         script.sensor_params(Camera([[100.0, 0.0, 63.5], [0.0, 90.0, 47.5], [0.0, 0.0, 1.0]], R, t, 128, 96))
 
 
+def test_fractal_albedo_has_detail_at_every_scale_and_wraps(script):
+    """The benchmark-size twin of the torus reads a fractal-noise albedo: in range, seeded, periodic (the torus's UV
+    seams meet without a jump) and with detail at every scale."""
+    a = script.fractal_albedo(128)
+    assert a.shape == (128, 128, 3) and a.dtype == torch.float64
+    assert float(a.min()) >= 0.03 and float(a.max()) <= 0.95
+    assert torch.equal(a, script.fractal_albedo(128)) and not torch.equal(a, script.fractal_albedo(128, seed=11))
+    step = (a[:, 1:] - a[:, :-1]).abs().mean()
+    assert (a[:, 0] - a[:, -1]).abs().mean() < 2 * step and (a[0] - a[-1]).abs().mean() < 2 * step
+    # energy in each octave of frequency: amplitude ∝ f^-1.6 over a 2-D annulus (area ∝ f²) gives 2^-1.2 ≈ 0.44 from
+    # one octave to the next, every octave holding detail
+    f = torch.fft.fftfreq(128, dtype=torch.float64)
+    r = (f[:, None] ** 2 + f[None, :] ** 2).sqrt()
+    power = torch.fft.fft2(a[..., 0] - a[..., 0].mean()).abs().square()
+    octaves = [float(power[(r > lo) & (r <= 2 * lo)].sum()) for lo in (1 / 64, 1 / 32, 1 / 16, 1 / 8)]
+    assert all(0.25 < b / a_ < 0.8 for a_, b in zip(octaves[:-1], octaves[1:], strict=True)), octaves
+
+
 def test_missing_mitsuba_exits_with_the_install_command(script, monkeypatch):
     monkeypatch.setitem(sys.modules, "mitsuba", None)  # makes `import mitsuba` raise ImportError
     with pytest.raises(SystemExit, match="pip install mitsuba"):
