@@ -353,6 +353,7 @@ def _footprint_stage(fit: _Fit, theta: Tensor, footprints, share: bool,
         theta, finfo = footprint_steps(theta, steps, opts.anchor_weight, target)
         finfo["joint_s"] += finfo_free["joint_s"]
         finfo["joint_history"] = finfo_free["joint_history"] + finfo["joint_history"][1:]
+        finfo["joint_accepted"] = finfo_free["joint_accepted"] + finfo["joint_accepted"]
     else:
         theta, finfo = footprint_steps(theta, steps, opts.anchor_weight if share else 0.0)
     return theta, finfo

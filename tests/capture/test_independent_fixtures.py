@@ -168,6 +168,8 @@ def test_footprint_fit_explains_the_mitsuba_ggx_sphere(mitsuba_scene, tmp_path):
     visible = sets["well_lit_visible_highlight"]
     assert visible["texels"] > 200
     assert visible["albedo"] < 0.005 and visible["f0"] < 0.012 and visible["roughness_alpha"] < 0.025
+    # the report's trials cover the untied steps as well as the tied ones: at least one per step of the history
+    assert len(r.fit["footprint_accepted"]) >= len(r.fit["footprint_history"]) - 1
 
 
 def test_cameras_in_another_renderers_frame_are_reported_not_passed(mitsuba_scene, tmp_path):
