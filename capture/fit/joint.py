@@ -212,6 +212,22 @@ class _SharingPrior:
 #: f0 / roughness 0.078 / 0.082 / 0.255, worst view 29.8 dB; with 12 its 5th attempt is accepted and the refinement
 #: goes on: 0.031 / 0.059 / 0.155, 63.9 dB. Scenes whose steps are accepted at once are unchanged.
 JOINT_ATTEMPTS = 12
+#: Largest trust-region radius of :func:`refine_joint` (θ units per component). It starts at :data:`MAX_STEP`, the
+#: per-texel LM's fixed box, doubles after an accepted step the box cut and halves after a rejected one
+#: (:func:`_damped_step`). With the box fixed at 1, 8–13 % of the components of every step of the Mitsuba sphere
+#: were cut, and the steps converged slowly: on the GGX scenes (`shadecap reconstruct`, 2-core CPU) χ² per residual /
+#: well-lit albedo, f0, α RMSE went, fixed box → radius up to 3 (→ fixed box of 3): Mitsuba sphere 256² 0.68 → 0.41
+#: (0.27), 0.0175 / 0.0273 / 0.1346 → 0.0171 / 0.0262 / 0.1323, visible highlights 0.0060 / 0.0093 / 0.0159 → 0.0056 /
+#: 0.0089 / 0.0155; the small sphere 0.55 → 0.49, α 0.119 → 0.115; the default synthetic scene (8 × 8 jittered rays)
+#: 0.57 → 0.23 (0.23), 0.0134 / 0.0141 / 0.0590 → 0.0130 / 0.0136 / 0.0583; with 3 000 e⁻ shot noise 1.91 → 1.88,
+#: 0.0324 / 0.0481 / 0.1678 → 0.0330 / 0.0488 / 0.1648; the same times within the machine's drift. A fixed box of 3
+#: (and of 2) lowered χ² as much but lost α on the default scene (0.0612) and the sphere's visible highlights
+#: (0.0170); a fixed box of 10 diverged (χ² 132). docs/log.md, "the joint solves' trust region".
+TRUST_MAX = 3.0
+#: Smallest radius: a streak of rejections halves it each time, and the damping λ, growing ×4 per rejection, is what
+#: shortens the steps beyond that; the floor keeps a long streak from leaving the next steps a box too small to
+#: regrow from in a few steps (×2 per cut step).
+TRUST_MIN = 1.0 / 64
 
 
 class _JointData:
@@ -421,11 +437,15 @@ def _pcg(system: _Normal, lam: float, rhs: Tensor, Minv: Tensor, iterations: int
     return x
 
 
-def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, total_of: Callable[[Tensor], float],
-                 cg_iterations: int, accepted: list[bool]) -> tuple[Tensor, float, float]:
+def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius: float,
+                 total_of: Callable[[Tensor], float], cg_iterations: int,
+                 accepted: list[bool]) -> tuple[Tensor, float, float, float]:
     """Trial steps of one outer iteration of :func:`refine_joint` until one lowers the total cost: each solves the
-    damped system (:func:`_pcg`), clamps it to the trust region and is kept when it lowers the cost (λ / 3), else λ
-    grows ×4. Appends each attempt's outcome to ``accepted``; returns ``(theta, cost, lam)``."""
+    damped system (:func:`_pcg`) and clamps it to the trust region ``|Δθ_i| ≤ radius``; kept when it lowers the
+    cost (λ / 3; the radius doubles, up to :data:`TRUST_MAX`, when the clamp cut some component), else the step
+    clamped to half the radius is tried (a cost evaluation, no solve), and when that fails too λ grows ×4 and the
+    system is solved again within the halved radius. Appends each trial's outcome to ``accepted``; returns
+    ``(theta, cost, lam, radius)``."""
     eye = torch.eye(theta.shape[1], dtype=ACC, device=theta.device)
     # up to JOINT_ATTEMPTS damping increases (×4 each) before the step is given up: after a failed outer
     # iteration the loop stops, so 4 attempts (λ ≤ 0.064) ended the refinement before its first step on the
@@ -436,17 +456,21 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, total_
         Minv, _ = torch.linalg.inv_ex(M)
         rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))
         x = _pcg(system, lam, rhs, Minv, cg_iterations)
-        x = x.clamp(-MAX_STEP, MAX_STEP)
-        trial = theta + x
-        new_cost = total_of(trial)
-        if new_cost < cost:
-            theta, cost = trial, new_cost
-            lam = max(lam / 3, 1e-9)
-            accepted.append(True)
-            break
+        cut = bool((x.abs() > radius).any())
+        for r in (radius, radius / 2):
+            trial = theta + x.clamp(-r, r)
+            new_cost = total_of(trial)
+            accepted.append(new_cost < cost)
+            if new_cost < cost:
+                theta, cost = trial, new_cost
+                lam = max(lam / 3, 1e-9)
+                radius = min(2 * r, TRUST_MAX) if cut and r == radius else r
+                return theta, cost, lam, radius
+            if not cut:
+                break
         lam *= 4
-        accepted.append(False)
-    return theta, cost, lam
+        radius = max(radius / 2, TRUST_MIN)
+    return theta, cost, lam, radius
 
 
 def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor, groups, *, loss: str, delta: float,
@@ -470,7 +494,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     applies ``J_s``, ``J_sᵀW`` and scatters back with the weights; the preconditioner is the exact
     per-texel P×P block). A step is kept when it lowers the total cost, else λ grows ×4 and the
     step is re-solved. Variables are θ (the sigmoid/softplus parameterisation), with the same
-    trust region |Δθ_i| ≤ :data:`MAX_STEP` per component as :func:`solve_fast`.
+    trust region |Δθ_i| ≤ radius per component, the radius adapted from :data:`MAX_STEP` (:func:`solve_fast`'s fixed
+    box) up to :data:`TRUST_MAX` (:func:`_damped_step`).
 
     ``sharing > 0`` adds the edge-preserving prior of :class:`_SharingPrior` between 4-neighbour
     observed texels (and observed texels two apart with an unobserved one between them)
@@ -546,7 +571,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
         c = data.cost(th)
         return c + (prior.energy(layout.canonical(th)) if prior is not None else 0.0)
 
-    lam = 1e-3
+    lam, radius = 1e-3, MAX_STEP
     cost = total_of(theta)
     history, accepted = [cost / data.n_res], []
     for it in range(iterations):
@@ -567,7 +592,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             # the step's gain is measured against the cost under this iteration's objective: the units' update
             # above re-weighs the prior, so the previous entry of the history may be of another objective
             before = cost
-            theta, cost, lam = _damped_step(system, theta, cost, lam, total_of, cg_iterations, accepted)
+            theta, cost, lam, radius = _damped_step(system, theta, cost, lam, radius, total_of, cg_iterations,
+                                                    accepted)
         history.append(cost / data.n_res)
         if progress is not None:
             progress("footprint" if data.pix is not None else "joint", it + 1, history[-1])

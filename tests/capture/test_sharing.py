@@ -1,5 +1,7 @@
 """Reflectance sharing (capture/fit/sharing.py) and the edge-preserving prior of the joint refinement."""
 
+import math
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -448,6 +450,52 @@ def test_refinement_goes_on_when_the_noise_units_change_its_objective():
     assert h[2] > h[1]                                   # the units' update raised the recorded cost
     assert len(h) == 6 and info["joint_accepted"] == [True] * 5
     assert all(b < a for a, b in zip(h[2:-1], h[3:], strict=True))   # and each later step lowered it
+
+
+class _Quadratic:
+    """A damped system for ``_damped_step`` of the cost Σ (θ − t)²: Hessian 2·I, Gauss-Newton step t − θ."""
+
+    def __init__(self, theta, target):
+        T, P = theta.shape
+        self.B = 2.0 * torch.eye(P, dtype=torch.float64).expand(T, P, P).clone()
+        self.diag = torch.full((T, P), 2.0, dtype=torch.float64)
+        self.live = torch.ones(T, dtype=torch.bool)
+        self.g = 2.0 * (target - theta)
+
+    def matvec(self, v, lam):
+        return 2.0 * v + lam * self.diag * v
+
+
+def test_joint_steps_trust_region_grows_when_cut_and_tries_half_a_rejected_step():
+    # the exact step to θ = 5 is cut by the box: 1, then (radius doubled) 2, then 3 (TRUST_MAX) — θ 1, 3, 5 where a
+    # fixed box of 1 reaches 3 after three steps
+    from capture.fit.joint import MAX_STEP, TRUST_MAX, _damped_step
+
+    assert MAX_STEP == 1.0 and TRUST_MAX == 3.0
+    target = torch.full((4, 2), 5.0, dtype=torch.float64)
+
+    def cost_of(th):
+        return float((th - target).square().sum())
+
+    theta, lam, radius, accepted = torch.zeros(4, 2, dtype=torch.float64), 1e-12, MAX_STEP, []
+    seen = []
+    for _ in range(3):
+        theta, cost, lam, radius = _damped_step(_Quadratic(theta, target), theta, cost_of(theta), lam, radius,
+                                                cost_of, 10, accepted)
+        seen.append((float(theta[0, 0]), radius))
+    assert [round(t, 6) for t, _ in seen] == [1.0, 3.0, 5.0] and [r for _, r in seen] == [2.0, 3.0, 3.0]
+    assert accepted == [True] * 3
+    # a wall: any component moved by more than 1.5 costs infinitely much. The step clamped to the radius (2) is
+    # rejected, the one clamped to half of it accepted at once — one solve, and the radius is the half
+    theta, accepted = torch.zeros(4, 2, dtype=torch.float64), []
+
+    def walled(th):
+        return math.inf if bool((th.abs() > 1.5).any()) else cost_of(th)
+
+    theta, _, lam2, radius = _damped_step(_Quadratic(theta, target), theta, walled(theta), 1e-12, 2.0, walled, 10,
+                                          accepted)
+    assert accepted == [False, True] and radius == 1.0 and float(theta.max()) == pytest.approx(1.0)
+    assert lam2 == pytest.approx(1e-9)   # an accepted step: λ / 3, floored
 
 
 def test_pooled_materials_recover_a_tile_lobe_that_no_single_texel_determines():
