@@ -452,6 +452,30 @@ def test_refinement_goes_on_when_the_noise_units_change_its_objective():
     assert all(b < a for a, b in zip(h[2:-1], h[3:], strict=True))   # and each later step lowered it
 
 
+def test_refinement_prices_each_trial_once_and_nothing_else(monkeypatch):
+    # a data cost is a full prediction of the photos; the units' update and the prior's calibration change only the
+    # prior, so the refinement renders once at the start and once per trial step — the same fit as re-pricing
+    from capture.fit import joint
+    from capture.fit.layout import param_groups
+
+    model = materials.get("lambert")
+    g = torch.Generator().manual_seed(0)
+    albedo = 0.2 + 0.6 * torch.rand(6, 6, 3, generator=g, dtype=torch.float64)
+    obs = synthetic_observations(model, {"albedo": albedo}, samples_per_texel=2)
+    layout = Layout.of(model)
+    theta = torch.zeros(obs.n_texels, layout.P, dtype=torch.float64)
+    calls = []
+    cost = joint._JointData.cost
+    monkeypatch.setattr(joint._JointData, "cost", lambda self, th: calls.append(1) or cost(self, th))
+    th, info = joint.refine_joint(model, obs, layout, theta, param_groups(layout), loss="l2", delta=1.0,
+                                  sampling="nearest", sharing=1.0, iterations=5, noise_adaptive=("albedo",))
+    assert len(calls) == 1 + len(info["joint_accepted"])
+    # the data cost kept is the final θ's, not a rejected trial's
+    data = joint._JointData(model, obs, layout, param_groups(layout), obs.n_texels, sampling="nearest",
+                            footprints=None, loss="l2", delta=1.0)
+    assert info["joint_data_cost"] == pytest.approx(cost(data, th) / data.n_res, rel=1e-12)
+
+
 class _Quadratic:
     """A damped system for ``_damped_step`` of the cost Σ (θ − t)²: Hessian 2·I, Gauss-Newton step t − θ."""
 
