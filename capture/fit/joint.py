@@ -216,13 +216,14 @@ JOINT_ATTEMPTS = 12
 #: per-texel LM's fixed box, doubles after an accepted step the box cut and halves after a rejected one
 #: (:func:`_damped_step`). With the box fixed at 1, 8–13 % of the components of every step of the Mitsuba sphere
 #: were cut, and the steps converged slowly: on the GGX scenes (`shadecap reconstruct`, 2-core CPU) χ² per residual /
-#: well-lit albedo, f0, α RMSE went, fixed box → radius up to 3 (→ fixed box of 3): Mitsuba sphere 256² 0.68 → 0.41
-#: (0.27), 0.0175 / 0.0273 / 0.1346 → 0.0171 / 0.0262 / 0.1323, visible highlights 0.0060 / 0.0093 / 0.0159 → 0.0056 /
-#: 0.0089 / 0.0155; the small sphere 0.55 → 0.49, α 0.119 → 0.115; the default synthetic scene (8 × 8 jittered rays)
-#: 0.57 → 0.23 (0.23), 0.0134 / 0.0141 / 0.0590 → 0.0130 / 0.0136 / 0.0583; with 3 000 e⁻ shot noise 1.91 → 1.88,
-#: 0.0324 / 0.0481 / 0.1678 → 0.0330 / 0.0488 / 0.1648; the same times within the machine's drift. A fixed box of 3
-#: (and of 2) lowered χ² as much but lost α on the default scene (0.0612) and the sphere's visible highlights
-#: (0.0170); a fixed box of 10 diverged (χ² 132). docs/log.md, "the joint solves' trust region".
+#: well-lit albedo, f0, α RMSE went, fixed box → radius from 1 up to 3: Mitsuba sphere 256² 0.68 → 0.41, 0.0175 /
+#: 0.0273 / 0.1346 → 0.0171 / 0.0262 / 0.1323, visible highlights 0.0060 / 0.0093 / 0.0159 → 0.0056 / 0.0089 / 0.0155;
+#: the small sphere 0.55 → 0.49, α 0.119 → 0.115; the default synthetic scene (8 × 8 jittered rays) 0.57 → 0.23,
+#: 0.0134 / 0.0141 / 0.0590 → 0.0130 / 0.0136 / 0.0583; with 3 000 e⁻ shot noise 1.91 → 1.88, 0.0324 / 0.0481 /
+#: 0.1678 → 0.0330 / 0.0488 / 0.1648; the same times within the machine's drift. Starting at 3 (or at 2 with 2 the
+#: largest) lowered χ² as much (sphere 0.27, default scene 0.23) but lost α on the default scene (0.0612) and on the
+#: sphere's visible highlights (0.0170); a box fixed at 10 diverged (χ² 132). docs/log.md, "the joint solves' trust
+#: region".
 TRUST_MAX = 3.0
 #: Smallest radius: a streak of rejections halves it each time, and the damping λ, growing ×4 per rejection, is what
 #: shortens the steps beyond that; the floor keeps a long streak from leaving the next steps a box too small to
@@ -442,10 +443,10 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
                  accepted: list[bool]) -> tuple[Tensor, float, float, float]:
     """Trial steps of one outer iteration of :func:`refine_joint` until one lowers the total cost: each solves the
     damped system (:func:`_pcg`) and clamps it to the trust region ``|Δθ_i| ≤ radius``; kept when it lowers the
-    cost (λ / 3; the radius doubles, up to :data:`TRUST_MAX`, when the clamp cut some component), else the step
-    clamped to half the radius is tried (a cost evaluation, no solve), and when that fails too λ grows ×4 and the
-    system is solved again within the halved radius. Appends each trial's outcome to ``accepted``; returns
-    ``(theta, cost, lam, radius)``."""
+    cost (λ / 3; the radius doubles, up to :data:`TRUST_MAX`, when the clamp cut some component); else, if the clamp
+    cut the step, the step clamped to half the radius is tried (a cost evaluation, no solve), and when that fails too
+    (or there was no cut) λ grows ×4 and the system is solved again within the halved radius. Appends each trial's
+    outcome to ``accepted``; returns ``(theta, cost, lam, radius)``."""
     eye = torch.eye(theta.shape[1], dtype=ACC, device=theta.device)
     # up to JOINT_ATTEMPTS damping increases (×4 each) before the step is given up: after a failed outer
     # iteration the loop stops, so 4 attempts (λ ≤ 0.064) ended the refinement before its first step on the
