@@ -430,6 +430,16 @@ def test_refine_joint_rejects_bad_sharing_options():
                      noise_adaptive=["gloss"])
 
 
+def _lambert_refinement():
+    """A 6 × 6 Lambert problem for refine_joint (two samples a texel, random albedo): model, obs, layout, θ = 0."""
+    model = materials.get("lambert")
+    g = torch.Generator().manual_seed(0)
+    albedo = 0.2 + 0.6 * torch.rand(6, 6, 3, generator=g, dtype=torch.float64)
+    obs = synthetic_observations(model, {"albedo": albedo}, samples_per_texel=2)
+    layout = Layout.of(model)
+    return model, obs, layout, torch.zeros(obs.n_texels, layout.P, dtype=torch.float64)
+
+
 def test_refinement_goes_on_when_the_noise_units_change_its_objective():
     # the noise-adaptive units are updated from the second iteration on; the prior's energy under the new units can
     # exceed the whole cost of the step before (here 0.021 → 0.33 per residual). The stopping rule must compare
@@ -438,12 +448,7 @@ def test_refinement_goes_on_when_the_noise_units_change_its_objective():
     from capture.fit.joint import refine_joint
     from capture.fit.layout import param_groups
 
-    model = materials.get("lambert")
-    g = torch.Generator().manual_seed(0)
-    albedo = 0.2 + 0.6 * torch.rand(6, 6, 3, generator=g, dtype=torch.float64)
-    obs = synthetic_observations(model, {"albedo": albedo}, samples_per_texel=2)
-    layout = Layout.of(model)
-    theta = torch.zeros(obs.n_texels, layout.P, dtype=torch.float64)
+    model, obs, layout, theta = _lambert_refinement()
     _, info = refine_joint(model, obs, layout, theta, param_groups(layout), loss="l2", delta=1.0, sampling="nearest",
                            sharing=1.0, iterations=5, noise_adaptive=("albedo",))
     h = info["joint_history"]
@@ -458,12 +463,7 @@ def test_refinement_prices_each_trial_once_and_nothing_else(monkeypatch):
     from capture.fit import joint
     from capture.fit.layout import param_groups
 
-    model = materials.get("lambert")
-    g = torch.Generator().manual_seed(0)
-    albedo = 0.2 + 0.6 * torch.rand(6, 6, 3, generator=g, dtype=torch.float64)
-    obs = synthetic_observations(model, {"albedo": albedo}, samples_per_texel=2)
-    layout = Layout.of(model)
-    theta = torch.zeros(obs.n_texels, layout.P, dtype=torch.float64)
+    model, obs, layout, theta = _lambert_refinement()
     calls = []
     cost = joint._JointData.cost
     monkeypatch.setattr(joint._JointData, "cost", lambda self, th: calls.append(1) or cost(self, th))
