@@ -520,6 +520,17 @@ def test_joint_steps_trust_region_grows_when_cut_and_tries_half_a_rejected_step(
                                           accepted)
     assert accepted == [False, True] and radius == 1.0 and float(theta.max()) == pytest.approx(1.0)
     assert lam2 == pytest.approx(1e-9)   # an accepted step: λ / 3, floored
+    # a wall at 0.3: both trials of the first solve fail (radius 1 and 0.5), λ grows ×4 and the radius halves; the
+    # second solve's trials are 0.5 (rejected) and 0.25 (kept)
+    theta, accepted = torch.zeros(4, 2, dtype=torch.float64), []
+
+    def near(th):
+        return math.inf if bool((th.abs() > 0.3).any()) else cost_of(th)
+
+    theta, _, lam3, radius = _damped_step(_Quadratic(theta, target), theta, near(theta), 1e-3, 1.0, near, 10,
+                                          accepted)
+    assert accepted == [False, False, False, True] and radius == 0.25 and float(theta.max()) == pytest.approx(0.25)
+    assert lam3 == pytest.approx(4e-3 / 3)
 
 
 def test_pooled_materials_recover_a_tile_lobe_that_no_single_texel_determines():
