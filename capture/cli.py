@@ -561,6 +561,9 @@ def run(command: str, func, args, name: str | None = None) -> int:
     is ``interrupted; nothing written`` and status 130 (a command that finished some outputs before, as ``demo``
     does, lists them in ``args.completed``). Messages start with ``name`` (default ``shadecap COMMAND``)."""
     name = name or f"shadecap {command}"
+    from renderer.device import tune_allocator
+
+    tune_allocator()                    # the process is the command's: freed temporaries kept for reuse
     try:
         if command != "models":
             _import_eagerly()

@@ -62,7 +62,7 @@ from capture.bench import (
     run_scale_benchmark,
     run_scaling_benchmark,
 )
-from renderer.device import resolve_device
+from renderer.device import resolve_device, tune_allocator
 
 
 def _config(text: str) -> tuple[int, int, int] | str:
@@ -106,6 +106,7 @@ if __name__ == "__main__":
     ap.add_argument("--no-sweeps", action="store_true", help="reconstruction: skip the texture/material sweeps")
     args = ap.parse_args()
     args.device = str(resolve_device(args.device))
+    tune_allocator()                    # as the command line does: the figures are what its users see
     if args.what == "scale":
         configs = [] if args.configs == ["none"] else args.configs
         print(run_scale_benchmark(configs, args.devices, work=args.work, threads=args.threads, out=args.out,

@@ -105,3 +105,25 @@ def test_block_sizes_grow_on_a_gpu_only():
     for bad in (0, -3, 2.5, True, "8"):
         with pytest.raises(ValueError, match="positive integer"):
             block_size(bad, "cpu")
+
+
+def test_the_command_line_keeps_freed_temporaries_in_glibcs_heap(monkeypatch):
+    # tune_allocator sets glibc's mmap threshold (M_MMAP_THRESHOLD = -3) and trim threshold (M_TRIM_THRESHOLD = -1) to
+    # the module's values, says False where there is no glibc, and every command runs after it
+    import renderer.device as device
+    from capture import cli
+
+    calls = []
+
+    def fake(name):
+        return (lambda param, value: calls.append((param, value)) or 1) if name == "mallopt" else None
+
+    monkeypatch.setattr(device, "_libc_function", fake)
+    assert device.tune_allocator() is True
+    assert calls == [(-3, 32 << 20), (-1, 256 << 20)] == [(-3, device.MMAP_THRESHOLD), (-1, device.TRIM_THRESHOLD)]
+    monkeypatch.setattr(device, "_libc_function", lambda name: None)
+    assert device.tune_allocator() is False
+    order = []
+    monkeypatch.setattr(device, "tune_allocator", lambda: order.append("tune"))
+    assert cli.run("models", lambda args: order.append("command") or 0, None) == 0
+    assert order == ["tune", "command"]
