@@ -229,9 +229,6 @@ TRUST_MAX = 3.0
 #: shortens the steps beyond that; the floor keeps a long streak from leaving the next steps a box too small to
 #: regrow from in a few steps (×2 per cut step).
 TRUST_MIN = 1.0 / 64
-#: Smallest damping of :func:`refine_joint` (relative to the per-texel diagonal): accepted steps shrink λ by up to
-#: ×3 each, and below this the damped system is the undamped one to float64 precision anyway.
-LAMBDA_MIN = 1e-9
 
 
 class _JointData:
@@ -441,25 +438,14 @@ def _pcg(system: _Normal, lam: float, rhs: Tensor, Minv: Tensor, iterations: int
     return x
 
 
-def _gain_ratio(system: _Normal, rhs: Tensor, step: Tensor, decrease: float) -> float:
-    """The cost's actual ``decrease`` over the one its Gauss-Newton model predicts for ``step`` (undamped). The cost
-    is Σ w r² + the prior's energy and the system's gradient and matrix are half its derivatives (``JᵀWr``,
-    ``JᵀWJ``), so the model's decrease is ``2 gᵀs − sᵀHs``; one product with ``H``. A step the model predicts no
-    decrease for (a clamped one can be) but that lowered the cost counts as 1."""
-    predicted = 2.0 * float((rhs * step).sum()) - float((step * system.matvec(step, 0.0)).sum())
-    return decrease / predicted if predicted > 0 else 1.0
-
-
 def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius: float,
                  total_of: Callable[[Tensor], float], cg_iterations: int,
                  accepted: list[bool]) -> tuple[Tensor, float, float, float]:
     """Trial steps of one outer iteration of :func:`refine_joint` until one lowers the total cost: each solves the
-    damped system (:func:`_pcg`) and clamps it to the trust region ``|Δθ_i| ≤ radius``. A step that lowers the cost
-    is kept; λ then shrinks by its gain ratio ρ (:func:`_gain_ratio`) as in Nielsen's rule, ``λ · max(1/3,
-    1 − (2ρ − 1)³)`` — ÷ 3 for a step the quadratic model predicted well, unchanged at ρ = ½, ×2 as ρ → 0 —, and
-    the radius doubles, up to :data:`TRUST_MAX`, when the clamp cut some component. A rejected step, if the clamp
-    cut it, is tried once more clamped to half the radius (a cost evaluation, no solve); when that fails too (or
-    there was no cut) λ grows ×4 and the system is solved again within the halved radius. Appends each trial's
+    damped system (:func:`_pcg`) and clamps it to the trust region ``|Δθ_i| ≤ radius``; kept when it lowers the
+    cost (λ / 3; the radius doubles, up to :data:`TRUST_MAX`, when the clamp cut some component); else, if the clamp
+    cut the step, the step clamped to half the radius is tried (a cost evaluation, no solve), and when that fails too
+    (or there was no cut) λ grows ×4 and the system is solved again within the halved radius. Appends each trial's
     outcome to ``accepted``; returns ``(theta, cost, lam, radius)``."""
     eye = torch.eye(theta.shape[1], dtype=ACC, device=theta.device)
     # up to JOINT_ATTEMPTS damping increases (×4 each) before the step is given up: after a failed outer
@@ -473,21 +459,14 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
         x = _pcg(system, lam, rhs, Minv, cg_iterations)
         cut = bool((x.abs() > radius).any())
         for r in (radius, radius / 2):
-            step = x.clamp(-r, r)
-            new_cost = total_of(theta + step)
+            trial = theta + x.clamp(-r, r)
+            new_cost = total_of(trial)
             accepted.append(new_cost < cost)
             if new_cost < cost:
-                # Nielsen's rule instead of a fixed λ / 3: after a step the model predicted poorly (ρ 0.1–0.4 in the
-                # sphere's tied footprint steps) λ / 3 overshot, and 3–5 rejections followed. Measured (2-core CPU,
-                # `shadecap reconstruct`; χ² per residual, footprint trials rejected, well-lit albedo / f0 / α):
-                # Mitsuba sphere 256² 0.41 → 0.26, 11 → 5, 0.0171 / 0.0262 / 0.1323 → 0.0167 / 0.0260 / 0.1320;
-                # default synthetic scene 12 → 1 rejected, total cost 6.07e-7 → 6.01e-7 per residual (χ² 0.23 →
-                # 0.34: the prior's share of it grew), errors equal; with 3 000 e⁻ shot noise 0.0330 / 0.0488 /
-                # 0.1648 → 0.0322 / 0.0473 / 0.1618
-                rho = min(_gain_ratio(system, rhs, step, cost - new_cost), 1.0)
-                lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAMBDA_MIN)
+                theta, cost = trial, new_cost
+                lam = max(lam / 3, 1e-9)
                 radius = min(2 * r, TRUST_MAX) if cut and r == radius else r
-                return theta + step, new_cost, lam, radius
+                return theta, cost, lam, radius
             if not cut:
                 break
         lam *= 4
