@@ -20,13 +20,16 @@ from collections.abc import Mapping
 __all__ = ["Progress", "ProgressError", "RECONSTRUCT_STAGES", "TICK_FRACTION", "DELAY_S"]
 
 #: Stage → weight (its expected share of a reconstruction's time, in percent of a typical run). Measured on the
-#: default scene (16 views of 256², 256² maps, GGX + Lambert, 2 threads; ``report.times`` and ``report.fit``):
-#: load 0.1 s, G-buffers 0.8 s, observations and footprints 22 s, per-texel stages 8 s, sharing 5 s, joint bilinear
-#: refinement 17 s, footprint solve with its posterior 233 s, metrics 3 s, outputs 4 s. ``select`` is
-#: ``model="auto"``'s trial fits, left out otherwise. Stages a run skips are passed over.
-RECONSTRUCT_STAGES = {"load": 0.5, "gbuffer": 0.5, "observe": 2.0, "footprints": 6.0, "select": 40.0,
-                      "solve": 3.0, "sharing": 2.0, "joint": 6.0, "footprint solve": 75.0, "metrics": 1.5,
-                      "outputs": 2.0}
+#: default scene (`shadecap synth` defaults: 16 views of 256², 256² maps, GGX + Lambert; 2-core CPU, 2 threads; the
+#: time between the bar's stage changes, 37 s in all): load 0.08 s, G-buffers 0.23 s, pixel-centre observations
+#: 0.13 s, footprints 2.1 s, per-texel stages 5.1 s, sharing 0.7 s, pixel-centre joint refinement 7.4 s, footprint
+#: solve with its posterior 20.6 s, metrics 0.4 s, outputs 1.1 s. (The weights measured when that footprint solve
+#: took 233 s gave the per-texel stages 3 % of the bar: on the 256² Mitsuba sphere the ETA read 0:22 after the
+#: footprints, 1:49 during the per-texel stages, 0:15 in the footprint solve.) ``select`` is ``model="auto"``'s trial
+#: fits, left out otherwise. Stages a run skips are passed over.
+RECONSTRUCT_STAGES = {"load": 0.3, "gbuffer": 0.6, "observe": 0.5, "footprints": 5.5, "select": 40.0,
+                      "solve": 14.0, "sharing": 2.0, "joint": 20.0, "footprint solve": 55.0, "metrics": 1.0,
+                      "outputs": 3.0}
 
 #: Within a stage, each tick moves the bar this fraction of the stage's remaining share.
 TICK_FRACTION = 0.1
