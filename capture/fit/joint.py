@@ -571,18 +571,19 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     # the data cost of the current θ is kept (``data_cost``): the units' update and the prior's calibration change
     # only the prior's energy, so re-pricing θ under them needs no new render of the photos (a data cost is a full
     # prediction: 0.13–0.2 s on the 256² Mitsuba sphere's footprints, twice per step before)
-    trial_data = [0.0]
+    trial_data = 0.0                    # the data cost of the last θ priced by total_of
 
     def prior_of(th):
         return prior.energy(layout.canonical(th)) if prior is not None else 0.0
 
     def total_of(th):
-        trial_data[0] = data.cost(th)
-        return trial_data[0] + prior_of(th)
+        nonlocal trial_data
+        trial_data = data.cost(th)
+        return trial_data + prior_of(th)
 
     lam, radius = 1e-3, MAX_STEP
     cost = total_of(theta)
-    data_cost = trial_data[0]
+    data_cost = trial_data
     history, accepted = [cost / data.n_res], []
     for it in range(iterations):
         with torch.no_grad():
@@ -605,7 +606,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
             theta, cost, lam, radius = _damped_step(system, theta, cost, lam, radius, total_of, cg_iterations,
                                                     accepted)
             if cost < before:           # a trial was kept: the last one priced (_damped_step returns at once)
-                data_cost = trial_data[0]
+                data_cost = trial_data
         history.append(cost / data.n_res)
         if progress is not None:
             progress("footprint" if data.pix is not None else "joint", it + 1, history[-1])
