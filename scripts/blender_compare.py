@@ -59,6 +59,11 @@ scene.render.threads = job["threads"]
 scene.render.film_transparent = True  # alpha = coverage
 world = bpy.data.worlds.new("black")
 world.color = (0.0, 0.0, 0.0)
+if world.node_tree is not None:  # Blender >= 5: a new world has nodes, a grey Background lighting the scene
+    for node in world.node_tree.nodes:
+        if node.type == "BACKGROUND":
+            node.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+            node.inputs["Strength"].default_value = 0.0
 scene.world = world
 scene.view_settings.view_transform = "Standard"
 scene.view_settings.look = "None"
