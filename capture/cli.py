@@ -276,6 +276,8 @@ def _texture_sets(text: str) -> tuple[str, ...]:
 
 
 def _add_export_args(p: argparse.ArgumentParser) -> None:
+    from capture import export
+
     p.add_argument("--out", required=True, help="atlas folder to create")
     p.add_argument("--size", type=_atlas_size, default=None, help="square atlas size in texels, or 'pow2' for the "
                    "smallest power-of-two square (default: the tight size that fits, sides multiples of 4)")
@@ -288,10 +290,11 @@ def _add_export_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--material-model", choices=("metallic-roughness", "specular"), default="metallic-roughness",
                    help="GLB material: glTF metallic-roughness (metals as metallic 1; default) or metallic 0 "
                         "with f0 in KHR_materials_specular")
-    p.add_argument("--compensation", choices=("none", "layering", "layering+multiscatter"), default="layering",
+    p.add_argument("--compensation", choices=export.COMPENSATIONS, default=export.DEFAULT_COMPENSATION,
                    help="what the GLB's textures compensate of the viewer's BRDF: the diffuse dimmed under the "
-                        "dielectric specular layer (default; glTF's BRDF, Blender >= 4), also the multiple "
-                        "scattering of metals (Blender >= 4's Cycles), or none (Blender 3.x; docs/export.md)")
+                        "dielectric specular layer and the multiple scattering of rough metals (layering+multiscatter,"
+                        " the default: Blender >= 4, three.js, Filament), the layering alone (viewers whose GGX "
+                        "scatters once, as glTF's definition), or none (Blender 3.x); docs/export.md")
     p.add_argument("--texture-sets", type=_texture_sets, default="all", metavar="SETS",
                    help="comma-separated engine texture sets written into textures/: gltf, unreal, unity-hdrp; "
                         "'all' (default) or 'none'")

@@ -433,8 +433,9 @@ def test_compensation_of_the_glb_textures(tmp_path):
     maps = _regions(16, 16)
     r = maps["roughness"]
     none = E.gltf_textures(maps, compensation="none")
-    lay = E.gltf_textures(maps)
-    both = E.gltf_textures(maps, compensation="layering+multiscatter")
+    lay = E.gltf_textures(maps, compensation="layering")
+    both = E.gltf_textures(maps)
+    assert E.DEFAULT_COMPENSATION == both["compensation"] == "layering+multiscatter"
     assert lay["compensation"] == "layering" and none["mapping"]["compensation"] == {"mode": "none"}
     # red plastic (metallic 0): base colour = albedo / (1 - Ē(r, t)) — t, as the gem needs the extension
     assert lay["specular"]
@@ -482,7 +483,8 @@ def test_compensation_of_the_glb_textures(tmp_path):
 def test_glb_material_renders_like_the_source_maps(tmp_path):
     maps = _regions()
     mesh = uv_sphere(segments=48, rings=24)
-    side = E.export_atlas([E.Material("m", maps, mesh)], tmp_path / "a")
+    # glTF's own BRDF: the diffuse layered under the dielectric specular, GGX scattering once (the viewer below)
+    side = E.export_atlas([E.Material("m", maps, mesh)], tmp_path / "a", compensation="layering")
     assert side["size"] == {"width": 64, "height": 64}
     glb_mesh, back, js = _read_gltf_material(tmp_path / "a" / "atlas.glb", tmp_path)
     # metals are metallic 1 with base colour = f0 (8-bit sRGB codes)
@@ -509,7 +511,8 @@ def test_glb_material_renders_like_the_source_maps(tmp_path):
     _, core, _ = _read_gltf_material(tmp_path / "a" / "atlas.glb", tmp_path, use_extension=False)
     core_psnr = _psnr(_views(glb_mesh, core), ref, obj)
     assert core_psnr > 45, core_psnr  # measured 49.7 dB
-    E.export_atlas([E.Material("m", maps, mesh)], tmp_path / "s", material_model="specular", texture_sets=None)
+    E.export_atlas([E.Material("m", maps, mesh)], tmp_path / "s", material_model="specular", texture_sets=None,
+                   compensation="layering")
     _, old, js_old = _read_gltf_material(tmp_path / "s" / "atlas.glb", tmp_path, use_extension=False)
     assert js_old["materials"][0]["pbrMetallicRoughness"]["metallicFactor"] == 1.0
     old_psnr = _psnr(_views(glb_mesh, old), ref, obj)
@@ -644,14 +647,16 @@ def test_cli_export_options_and_listing(tmp_path, capsys):
                  "unreal,unity-hdrp", "--material-model", "metallic-roughness"]) == 0
     out = capsys.readouterr().out
     assert "atlas.glb" in out and "textures/unreal_ORM.png" in out and "gltf_baseColor" not in out
-    assert "compensation layering" in out  # the default
-    assert (tmp_path / "o" / "atlas.glb").read_bytes()[:4] == b"glTF"
-    assert main(["export-atlas", str(rec), "--out", str(tmp_path / "c"), "--texture-sets", "none",
-                 "--compensation", "layering+multiscatter"]) == 0
-    assert "compensation layering+multiscatter" in capsys.readouterr().out
-    side = json.loads((tmp_path / "c" / "atlas.json").read_text())
+    assert "compensation layering+multiscatter" in out  # the default
+    side = json.loads((tmp_path / "o" / "atlas.json").read_text())
     assert side["gltf"]["compensation"] == "layering+multiscatter" and "f0_divisor" in side["gltf"]["mapping"][
         "compensation"]
+    assert (tmp_path / "o" / "atlas.glb").read_bytes()[:4] == b"glTF"
+    assert main(["export-atlas", str(rec), "--out", str(tmp_path / "c"), "--texture-sets", "none",
+                 "--compensation", "layering"]) == 0
+    assert "compensation layering;" in capsys.readouterr().out
+    side = json.loads((tmp_path / "c" / "atlas.json").read_text())
+    assert side["gltf"]["compensation"] == "layering" and "f0_divisor" not in side["gltf"]["mapping"]["compensation"]
     assert main(["export-atlas", str(rec), "--out", str(tmp_path / "p"), "--texture-sets", "none",
                  "--material-model", "specular", "--size", "pow2"]) == 0
     assert json.loads((tmp_path / "p" / "atlas.json").read_text())["size"] == {"width": 16, "height": 16}
@@ -717,12 +722,12 @@ def test_blender_cycles_renders_metals_like_the_photo(tmp_path):
     maps["f0"][:, :32] = torch.tensor(GOLD)
     maps["f0"][:, 32:] = torch.tensor(COPPER)
     major, (plain, multi, spec) = _blender_psnr(tmp_path, maps, [
-        {}, {"compensation": "layering+multiscatter"}, {"material_model": "specular"}])
+        {"compensation": "layering"}, {}, {"material_model": "specular", "compensation": "layering"}])
     if major < 4:  # Principled BSDF v1: single-scattering GGX, no coloured dielectric specular
         assert min(plain) >= 57, plain  # measured 64.4 / 60.7 dB
-        assert max(multi) < min(plain) - 10, multi  # measured 46.8 / 39.5 dB: metals compensated for nothing
+        assert max(multi) < min(plain) - 10, multi  # measured 46.8 / 39.5 dB: the default compensates for nothing
         assert max(spec) < 30, spec  # measured 22.9 / 20.2 dB: the metallic-0 form renders gold dark, untinted
-    else:  # Blender 4: multiple-scattering GGX (the importer's choice), Specular Tint read as F0's colour
+    else:  # Blender >= 4: multiple-scattering GGX (the importer's choice), Specular Tint read as F0's colour
         assert min(plain) >= 40, plain  # measured 52.4 / 42.6 dB
         assert min(multi) >= min(plain) + 3, (multi, plain)  # measured 53.0 / 47.7 dB
         assert min(spec) >= 40, spec  # measured 52.4 / 42.5 dB
@@ -732,7 +737,7 @@ def test_blender_cycles_renders_metals_like_the_photo(tmp_path):
 def test_blender_cycles_renders_dielectrics_like_the_photo(tmp_path):
     # gold, copper, red plastic, the gem (f0 0.08: KHR_materials_specular); the dielectrics set the level
     major, (plain, layered, both) = _blender_psnr(tmp_path, _regions(), [
-        {"compensation": "none"}, {}, {"compensation": "layering+multiscatter"}])
+        {"compensation": "none"}, {"compensation": "layering"}, {}])
     if major < 4:  # Burley diffuse, 5-8 % brighter than Lambert: the compensation only adds to it
         assert min(plain) >= 28, plain  # measured 31.4 / 29.8 dB
         assert max(layered) < min(plain), (layered, plain)  # measured 28.0 / 27.2 dB
