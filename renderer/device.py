@@ -26,7 +26,7 @@ from typing import TypeVar
 import torch
 
 __all__ = ["DEVICES", "DeviceError", "resolve_device", "per_view", "release_memory", "CUDA_BLOCK_FACTOR", "block_size",
-           "tune_allocator", "MMAP_THRESHOLD", "TRIM_THRESHOLD"]
+           "tune_allocator", "MMAP_THRESHOLD", "TRIM_THRESHOLD", "available_memory"]
 
 _R = TypeVar("_R")
 _PARALLEL = threading.Lock()
@@ -148,6 +148,24 @@ def tune_allocator() -> bool:
         return False
     # mallopt(M_MMAP_THRESHOLD = -3, bytes), mallopt(M_TRIM_THRESHOLD = -1, bytes): 1 on success
     return bool(mallopt(-3, MMAP_THRESHOLD)) and bool(mallopt(-1, TRIM_THRESHOLD))
+
+
+def available_memory(device: torch.device | str = "cpu") -> int | None:
+    """Bytes that new tensors on ``device`` can take now: on a GPU the free memory the driver reports, on the CPU
+    Linux's estimate of what can be allocated without swapping (``MemAvailable`` of ``/proc/meminfo``: free
+    memory plus the caches it can drop). None where it cannot be known (another system, no such line)."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        free, _total = torch.cuda.mem_get_info(dev)
+        return int(free)
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024          # the file's unit is kiB
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 
 def block_size(cpu_block: int, device: torch.device | str) -> int:

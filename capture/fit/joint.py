@@ -615,6 +615,8 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
     out = {"joint_s": time.perf_counter() - t0, "joint_history": history, "joint_accepted": accepted,
            "joint_sampling": "footprint" if data.pix is not None else sampling,
            "joint_data_cost": data_cost / data.n_res}
+    if data.pix is not None:    # the form the pixel operator keeps its Jacobian in (auto: decided by the memory)
+        out["joint_jacobian"] = data.pix.jacobian_form
     if adapt:   # the ratios measured (none when the refinement stopped after one iteration) and the final units
         out["noise_ratio"] = units.ratios
         out["prior_units"] = units.units()

@@ -11,13 +11,14 @@ import torch
 from torch import Tensor
 
 from materials.model import Model
-from renderer.device import block_size
+from renderer.device import available_memory, block_size
 
 from .layout import ACC, Layout, SolverError
 from .texel import JACOBIAN_BLOCK, jacobian_blocks
 
-__all__ = ["CsrPattern", "csr_matrix", "sampling_operator", "PixelJacobian", "PixelOperator", "pixel_operator",
-           "AFFINE_TOL", "NORMAL_BLOCK"]
+__all__ = ["CsrPattern", "csr_matrix", "sampling_operator", "PixelJacobian", "SampleJacobian", "PixelOperator",
+           "pixel_operator", "AFFINE_TOL", "NORMAL_BLOCK", "JACOBIAN_FORMS", "ASSEMBLED_SHARE",
+           "check_jacobian_form"]
 
 #: Largest difference, relative to the largest pixel value, between the model evaluated at other parameter values
 #: and the prediction of its Jacobian for the model to count as affine (:meth:`PixelOperator.linearise`): the
@@ -32,6 +33,19 @@ NORMAL_BLOCK = 1 << 16
 #: Entries per block when values are placed into, or read back from, the Jacobian's matrices
 #: (:class:`_Placement`): [2¹⁸, 9] int64 places are 19 MB of temporaries.
 PLACE_BLOCK = 1 << 18
+#: How :class:`PixelOperator` keeps a linearisation's Jacobian (``FitOptions.jacobian``, ``--jacobian``):
+#: ``"assembled"`` as the sparse pixel × texel matrices :class:`PixelJacobian` (the fastest products), ``"samples"``
+#: as the samples' own values :class:`SampleJacobian` (products through the sampling operators: less memory, more
+#: time), ``"auto"`` assembled unless that would take more than :data:`ASSEMBLED_SHARE` of the memory available.
+JACOBIAN_FORMS = ("auto", "assembled", "samples")
+#: Share of the memory available at the first linearisation (:func:`renderer.device.available_memory`) that the
+#: assembled matrices may take under ``"auto"``: while they are made, their values exist twice over (``A``'s and
+#: ``Aᵀ``'s) beside the samples' Jacobian, and the steps' temporaries and the allocator's fragmentation come on top
+#: (the 32 × 512² scene's resident memory peaks ~1.3 GB above its live tensors), so half of what is free is the most
+#: they can take without the process swapping.
+ASSEMBLED_SHARE = 0.5
+#: Bytes per non-zero of the assembled form: ``A`` and ``Aᵀ`` each hold a 32-bit column index and a float32 value.
+ASSEMBLED_BYTES = 16
 
 
 class PixelJacobian(NamedTuple):
@@ -50,6 +64,32 @@ class PixelJacobian(NamedTuple):
     ps: Tensor
     A: Tensor
     At: Tensor
+
+
+class SampleJacobian(NamedTuple):
+    """The pixel predictions' Jacobian kept per sample (``jacobian="samples"`` of :class:`PixelOperator`): the
+    samples' values at the (channel, parameter) pairs ``(cs[j], ps[j])``, pair-major ``JcT [k, S]`` in the samples'
+    precision. A product goes through the sampling operators — ``J u = group · Σ_j JcT_j ∘ (gather · u)_{ps_j}``
+    per channel, ``Jᵀ v = gatherᵀ · Σ_j JcT_j ∘ (share · v[pixel])_{cs_j}`` per parameter — and the normal
+    equations' blocks make each block of entries' values from it, so nothing of size entries × pairs is kept: 4
+    bytes per sample and pair against 16 per entry and pair in :class:`PixelJacobian`. Pair-major, each term is one
+    pass over contiguous values (the products of the 256² Mitsuba sphere took 11 and 13 ms against 17 and 19 with
+    the sample-major ``[S, k]``, and 3 ms each assembled: the operators' rows are samples, ~5 texture taps each,
+    instead of pixels, ~30 non-zeros each)."""
+
+    cs: Tensor
+    ps: Tensor
+    JcT: Tensor
+    n_params: int
+
+
+def _block_pairs(cs: Tensor, ps: Tensor, P: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The pairs ``(i, j)`` of kept values on the same channel — the terms of the per-texel blocks ``Σ_c C_cp w_c
+    C_cq``, each unordered pair once (the blocks are symmetric) — and their flat places ``p·P + q`` and ``q·P + p``
+    in a ``P × P`` block."""
+    order = torch.arange(len(cs), device=cs.device)
+    i, j = torch.nonzero((cs[:, None] == cs[None, :]) & (order[:, None] <= order[None, :]), as_tuple=True)
+    return i, j, ps[i] * P + ps[j], ps[j] * P + ps[i]
 
 
 class _Placement(NamedTuple):
@@ -177,7 +217,8 @@ class PixelOperator:
     ``Σ_i C_itᵀ W_i C_it`` (the preconditioner, and the posterior's information) are exact.
     """
 
-    def __init__(self, fp, T: int):
+    def __init__(self, fp, T: int, jacobian: str = "auto"):
+        check_jacobian_form(jacobian)
         so = fp.samples
         if so.taps is None:
             raise SolverError("pixel footprints need each sample's texture footprint (observe_footprints builds it)")
@@ -222,6 +263,9 @@ class PixelOperator:
         self._affine = None             # (canon, pred, J) once the model is found affine in its parameters
         self._affine_checked = False
         self._blocks = None             # (J, w, blocks) of the last normal(), reused while both are unchanged
+        self.jacobian = jacobian        # the form asked for (JACOBIAN_FORMS)
+        self.jacobian_form = None       # the form used, decided at the first linearisation
+        self._gather_t = None           # gather_op's transpose, made for the first product of the samples' form
 
     def observed(self) -> Tensor:
         """``[T]`` bool: texels some kept pixel reads with a positive weight."""
@@ -280,7 +324,10 @@ class PixelOperator:
         self._blocks = None             # (the last linearisation's blocks and Jacobian freed before the new ones)
         pred_s, Jc, mask = self._sample_jacobian(model, layout, canon, groups)
         pred = self.group_op @ pred_s
-        J = self._jacobian(Jc, mask, P)
+        if self._form(int(mask.sum()), Jc.device) == "assembled":
+            J = self._jacobian(Jc, mask, P)
+        else:
+            J = self._sample_form(Jc, mask, P)
         del Jc
         if not self._affine_checked:
             self._affine_checked = True
@@ -323,6 +370,43 @@ class PixelOperator:
             Jc[a:b, where[m]] = vals
         return pred, Jc, mask
 
+    def _form(self, k: int, device: torch.device) -> str:
+        """The Jacobian's form (:data:`JACOBIAN_FORMS`), decided once, at the first linearisation, for ``k`` kept
+        pairs: ``"auto"`` is ``"assembled"`` unless its ``E·k`` non-zeros would take more than
+        :data:`ASSEMBLED_SHARE` of the memory available (or that cannot be known)."""
+        if self.jacobian_form is None:
+            form = self.jacobian
+            if form == "auto":
+                avail = available_memory(device)
+                need = self.E * k * ASSEMBLED_BYTES
+                form = "samples" if avail is not None and need > ASSEMBLED_SHARE * avail else "assembled"
+            self.jacobian_form = form
+        return self.jacobian_form
+
+    def _sample_form(self, Jc: Tensor, mask: Tensor, P: int) -> SampleJacobian:
+        """The :class:`SampleJacobian` of the samples' Jacobian ``Jc [S, k]`` at the pairs of ``mask [3, P]``."""
+        cs, ps = torch.nonzero(mask, as_tuple=True)
+        return SampleJacobian(cs, ps, Jc.t().to(self.gather_op.dtype).contiguous(), P)
+
+    def _n_params(self, J: PixelJacobian | SampleJacobian) -> int:
+        """The parameters per texel, P, of a linearisation."""
+        return J.n_params if isinstance(J, SampleJacobian) else J.At.shape[0] // self.T
+
+    def _entry_values(self, Jc: Tensor, a: int, b: int) -> Tensor:
+        """``[b − a, k]`` the values of the entries ``a … b − 1``: their rows of ``corner_op · Jc``."""
+        crow, col, cval = self.corner_op.crow_indices(), self.corner_op.col_indices(), self.corner_op.values()
+        lo, hi = int(crow[a]), int(crow[b])
+        return csr_matrix(crow[a:b + 1] - lo, col[lo:hi], cval[lo:hi].to(Jc.dtype), (b - a, Jc.shape[0])) @ Jc
+
+    def _transposed_gather(self) -> Tensor:
+        """``[T, S]`` the transpose of ``gather_op`` (samples → texels), made once from its triplets."""
+        if self._gather_t is None:
+            G = self.gather_op
+            crow = G.crow_indices().long()
+            rows = torch.repeat_interleave(torch.arange(G.shape[0], device=crow.device), crow[1:] - crow[:-1])
+            self._gather_t = _csr(G.col_indices().long(), rows, G.values(), (self.T, G.shape[0]))
+        return self._gather_t
+
     def _jacobian(self, Jc: Tensor, mask: Tensor, P: int) -> PixelJacobian:
         """The :class:`PixelJacobian` of the samples' Jacobian ``Jc [S, k]`` at the (channel, parameter) pairs of
         ``mask [3, P]`` (the pairs some sample depends on; Lambert's albedo: the diagonal, a third of the block):
@@ -343,48 +427,43 @@ class PixelOperator:
                                    torch.empty(E * k, dtype=itype, device=dev))
             col_t = by_tex.scatter(lambda a, b: self.e_pix[perm[a:b], None].long() * 3 + cs[None],
                                    torch.empty(E * k, dtype=itype, device=dev))
-            # the pairs of kept values on the same channel: the terms of the per-texel blocks Σ_c C_cp w_c C_cq
-            # (each unordered pair once: the blocks are symmetric)
-            order = torch.arange(len(cs), device=cs.device)
-            i, j = torch.nonzero((cs[:, None] == cs[None, :]) & (order[:, None] <= order[None, :]), as_tuple=True)
             self._pattern = (key, cs, ps, by_pix, by_tex, (by_pix.row_pointers().to(itype), col_a),
-                             (by_tex.row_pointers().to(itype), col_t), (i, j, ps[i] * P + ps[j], ps[j] * P + ps[i]))
-        _, cs, ps, by_pix, by_tex, a_idx, t_idx, _ = self._pattern
+                             (by_tex.row_pointers().to(itype), col_t))
+        _, cs, ps, by_pix, by_tex, a_idx, t_idx = self._pattern
         # the values in the precision the model was evaluated in: float32 evaluations make float32 values, whose
         # products read half the bytes (with 32-bit indices 5.2 against 7.7 ms per product of 4.4 M non-zeros)
         vdt = self.fp.samples.dtype if self.fp.samples.dtype == torch.float32 else Jc.dtype
-        crow, col, cval = self.corner_op.crow_indices(), self.corner_op.col_indices(), self.corner_op.values()
-
-        def values(a: int, b: int) -> Tensor:        # V of the entries a … b − 1: their rows of corner_op · Jc
-            lo, hi = int(crow[a]), int(crow[b])
-            return csr_matrix(crow[a:b + 1] - lo, col[lo:hi], cval[lo:hi].to(Jc.dtype), (b - a, Jc.shape[0])) @ Jc
-
-        a_vals = by_pix.scatter(values, torch.empty(E * k, dtype=vdt, device=dev))
+        a_vals = by_pix.scatter(lambda a, b: self._entry_values(Jc, a, b), torch.empty(E * k, dtype=vdt, device=dev))
         perm = by_tex.order
         t_vals = by_tex.scatter(lambda a, b: a_vals[by_pix.place(perm[a:b])],
                                 torch.empty(E * k, dtype=vdt, device=dev))
         return PixelJacobian(cs, ps, csr_matrix(*a_idx, a_vals, (3 * self.R, P * self.T)),
                              csr_matrix(*t_idx, t_vals, (P * self.T, 3 * self.R)))
 
-    def normal(self, J: PixelJacobian, w: Tensor, wr: Tensor) -> tuple[Tensor, Tensor]:
+    def normal(self, J: PixelJacobian | SampleJacobian, w: Tensor, wr: Tensor) -> tuple[Tensor, Tensor]:
         """``(Jᵀ W r [T, P], blocks Σ_i C_itᵀ W_i C_it [T, P, P])`` with residual weights ``w [R, 3]`` and
         ``wr = w·r [R, 3]``. The blocks sum only the products of kept values on the same channel (GGX + Lambert:
-        27 of the 147 of the dense 3 × 7 blocks), whose values are read back from ``A``."""
-        i, j, pq, qp = self._pattern[7]
-        by_pix = self._pattern[3]
-        P = J.At.shape[0] // self.T
+        27 of the 147 of the dense 3 × 7 blocks), whose values are read back from ``A`` (or, for a
+        :class:`SampleJacobian`, made from the samples' values block by block)."""
+        samples = isinstance(J, SampleJacobian)
+        P = self._n_params(J)
+        i, j, pq, qp = _block_pairs(J.cs, J.ps, P)
         cached = self._blocks
         # the same Jacobian (an affine model's) with the same weights (L2: all ones) has the same blocks
         if cached is not None and cached[0] is J and torch.equal(cached[1], w):
             return self.apply_t(J, wr), cached[2]
-        vals = J.A.values()
+        # the values the entries' are made from: the samples' (sample-major, for the sparse products), or A's
+        vals, by_pix = (J.JcT.t().contiguous(), None) if samples else (J.A.values(), self._pattern[3])
         # Σ over a texel's entries of V_i w V_j, in blocks of entries: the [E, pairs] products whole are 300 MB
         # (GGX + Lambert at 256²) that cost more to allocate than to fill
         terms = torch.zeros(self.T, len(i), dtype=ACC, device=w.device)
         step = block_size(NORMAL_BLOCK, w.device)
         for a in range(0, self.E, step):
             b = min(a + step, self.E)
-            V = vals[by_pix.place(torch.arange(a, b, device=w.device))].to(ACC)
+            if samples:
+                V = self._entry_values(vals, a, b).to(ACC)
+            else:
+                V = vals[by_pix.place(torch.arange(a, b, device=w.device))].to(ACC)
             Vw = V * w[self.e_pix[a:b]][:, J.cs]
             terms.index_add_(0, self.e_tex[a:b].long(), Vw[:, i] * V[:, j])     # (int32 indices: 2.4× slower)
         off = pq != qp                  # (a parameter pair repeats over channels: roughness with itself on each)
@@ -393,20 +472,42 @@ class PixelOperator:
         self._blocks = (J, w, B)
         return self.apply_t(J, wr), B
 
-    def apply(self, J: PixelJacobian, u: Tensor) -> Tensor:
+    def apply(self, J: PixelJacobian | SampleJacobian, u: Tensor) -> Tensor:
         """``J u`` ``[R, 3]`` for texel updates ``u [T, P]``."""
+        if isinstance(J, SampleJacobian):
+            d = self.gather_op @ u.to(self.gather_op.dtype)                        # [S, P] the samples' changes
+            q = torch.zeros(d.shape[0], 3, dtype=d.dtype, device=d.device)
+            for j, (c, p) in enumerate(zip(J.cs.tolist(), J.ps.tolist(), strict=True)):
+                q[:, c].addcmul_(J.JcT[j], d[:, p])
+            return (self.group_op @ q.to(self.group_op.dtype)).to(u.dtype)
         return torch.mv(J.A, u.reshape(-1).to(J.A.dtype)).to(u.dtype).reshape(self.R, 3)
 
-    def apply_t(self, J: PixelJacobian, v: Tensor) -> Tensor:
+    def apply_t(self, J: PixelJacobian | SampleJacobian, v: Tensor) -> Tensor:
         """``Jᵀ v`` ``[T, P]`` for pixel values ``v [R, 3]``."""
+        if isinstance(J, SampleJacobian):
+            dt = J.JcT.dtype
+            vs = v.to(dt)[self.fp.group] * self.fp.share.to(dt)[:, None]           # [S, 3] each sample's part
+            z = torch.zeros(vs.shape[0], self._n_params(J), dtype=dt, device=vs.device)
+            for j, (c, p) in enumerate(zip(J.cs.tolist(), J.ps.tolist(), strict=True)):
+                z[:, p].addcmul_(J.JcT[j], vs[:, c])
+            return (self._transposed_gather() @ z).to(v.dtype)
         return torch.mv(J.At, v.reshape(-1).to(J.At.dtype)).to(v.dtype).reshape(self.T, -1)
 
 
-def pixel_operator(footprints, T: int) -> PixelOperator:
-    """``footprints`` as a :class:`PixelOperator` over ``T`` texels: an operator is passed through (built once by
-    :func:`capture.fit.fast.solve_fast` for all its stages), pixel footprints are built into one."""
+def check_jacobian_form(jacobian) -> None:
+    """A :class:`SolverError` unless ``jacobian`` is one of :data:`JACOBIAN_FORMS`."""
+    if jacobian not in JACOBIAN_FORMS:
+        raise SolverError(f"jacobian must be one of {list(JACOBIAN_FORMS)} (how the footprint solve keeps its "
+                          f"Jacobian), got {jacobian!r}")
+
+
+def pixel_operator(footprints, T: int, jacobian: str = "auto") -> PixelOperator:
+    """``footprints`` as a :class:`PixelOperator` over ``T`` texels keeping its Jacobian in the form ``jacobian``
+    (:data:`JACOBIAN_FORMS`): an operator is passed through (built once by :func:`capture.fit.fast.solve_fast` for
+    all its stages, with its own form), pixel footprints are built into one."""
+    check_jacobian_form(jacobian)
     if isinstance(footprints, PixelOperator):
         if footprints.T != T:
             raise SolverError(f"the pixel operator covers {footprints.T} texels, the maps {T}")
         return footprints
-    return PixelOperator(footprints, T)
+    return PixelOperator(footprints, T, jacobian)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 from .layout import SolverError
 from .noise import NOISE, check_loss, check_noise
+from .operators import JACOBIAN_FORMS, check_jacobian_form
 
 __all__ = ["FitOptions"]
 
@@ -95,6 +96,11 @@ class FitOptions:
             the photos by more than their noise allows are seeded again from more texels, and the photos judge
             (:data:`ANCHOR_RETRY_FACTOR`, ``info["share_retry"]``).
         footprint_iterations: LM steps of that final solve (default :data:`FOOTPRINT_STEPS`).
+        jacobian: how that solve keeps each linearisation's Jacobian (:data:`capture.fit.operators.JACOBIAN_FORMS`):
+            "assembled" as sparse pixel × texel matrices (the fastest products), "samples" per sample (products
+            through the sampling operators), "auto" (default) assembled unless that would take more than
+            :data:`capture.fit.operators.ASSEMBLED_SHARE` of the memory available. docs/image-formation.md, "Memory",
+            has the two forms' memory and time.
         sharing_albedo: the joint refinement's prior links neighbouring texels' albedo too (default; see
             :func:`refine_joint` for the measurements). Where the photos determine a texel's albedo the data win;
             where they barely do (texels read only through a neighbour's bilinear footprint, the grazing band) it
@@ -139,6 +145,10 @@ class FitOptions:
                                "camera (flash, turntable); 0 = off", metavar="N")
     footprint_iterations: int | None = _cli(None, int, "fast path: LM steps of the final solve on the photos' "
                                                        "pixel footprints (default: 6)")
+    jacobian: str = _cli("auto", str, "fast path: how the footprint solve keeps its Jacobian — assembled sparse "
+                                      "matrices (fastest), per sample (less memory, slower steps), or auto: "
+                                      "assembled unless they would take more than half the memory available",
+                         choices=JACOBIAN_FORMS)
 
     def __post_init__(self):
         check_loss(self.loss)
@@ -171,6 +181,7 @@ class FitOptions:
             raise SolverError(f"iterations and grid must be ≥ 0, got {iterations}, {grid}")
         if sampling not in ("nearest", "bilinear"):
             raise SolverError(f"sampling must be 'nearest' or 'bilinear', got {sampling!r}")
+        check_jacobian_form(self.jacobian)
         check_noise(self.noise)
 
     @classmethod

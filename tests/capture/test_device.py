@@ -127,3 +127,29 @@ def test_the_command_line_keeps_freed_temporaries_in_glibcs_heap(monkeypatch):
     monkeypatch.setattr(device, "tune_allocator", lambda: order.append("tune"))
     assert cli.run("models", lambda args: order.append("command") or 0, None) == 0
     assert order == ["tune", "command"]
+
+
+def test_available_memory_reads_memavailable_and_says_none_where_it_cannot(monkeypatch):
+    # /proc/meminfo's MemAvailable in bytes (the file's unit is kiB); None where the file or the line is missing
+    import builtins
+    import io
+
+    import renderer.device as device
+
+    real_open = builtins.open
+
+    def fake(text):
+        return lambda path, *a, **k: io.StringIO(text) if path == "/proc/meminfo" else real_open(path, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", fake("MemTotal:  16000 kB\nMemFree:  100 kB\nMemAvailable:  12345 kB\n"))
+    assert device.available_memory("cpu") == 12345 * 1024
+    monkeypatch.setattr(builtins, "open", fake("MemTotal:  16000 kB\n"))
+    assert device.available_memory("cpu") is None
+    monkeypatch.setattr(builtins, "open", fake("MemAvailable: lots\n"))
+    assert device.available_memory("cpu") is None
+
+    def missing(path, *a, **k):
+        raise FileNotFoundError(path)
+
+    monkeypatch.setattr(builtins, "open", missing)
+    assert device.available_memory(torch.device("cpu")) is None

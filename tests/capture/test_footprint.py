@@ -9,7 +9,7 @@ import torch
 import materials
 from capture.fit import Layout, solve_fast
 from capture.fit.layout import param_groups
-from capture.fit.operators import PixelOperator
+from capture.fit.operators import ASSEMBLED_SHARE, PixelOperator, SampleJacobian, pixel_operator
 from capture.footprint import (
     FOOTPRINT_MAX,
     FOOTPRINT_SPACING,
@@ -81,9 +81,11 @@ def test_sample_count_follows_the_texel_footprint():
     assert int(k.max()) == FOOTPRINT_MAX                                   # silhouette pixels
 
 
-def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx):
+@pytest.mark.parametrize("form", ["assembled", "samples"])
+def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx, form):
     """Float64: J u and Jᵀ v of the matrix-free operator equal the directional derivative of the pixel predictions
-    (central differences) and its adjoint; the per-texel blocks equal Jᵀ J restricted to the texel."""
+    (central differences) and its adjoint; the per-texel blocks equal Jᵀ J restricted to the texel — with the
+    Jacobian assembled into pixel × texel matrices and kept per sample alike."""
     sc, fp, _, T = ggx
     model = sc.model
     layout = Layout.of(model)
@@ -91,8 +93,9 @@ def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx):
     canon = torch.cat([sc.maps[s.name].reshape(T * T, -1).double() for s in layout.specs], -1)
     canon = canon.clamp(0.05, 0.95)
     sel.samples = sel.samples.to(dtype=torch.float64)
-    op = PixelOperator(sel, T * T)
+    op = PixelOperator(sel, T * T, jacobian=form)
     pred, C = op.linearise(model, layout, canon, param_groups(layout))
+    assert op.jacobian_form == form and isinstance(C, SampleJacobian) == (form == "samples")
     gen = torch.Generator().manual_seed(0)
     u = torch.randn(T * T, layout.P, generator=gen, dtype=torch.float64)
     h = 1e-6
@@ -139,6 +142,64 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
     monkeypatch.setattr(ops, "NORMAL_BLOCK", 53)
     for a, b in zip(whole, run(), strict=True):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-15 * float(a.abs().max()))
+
+
+@pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert"])
+def test_the_two_jacobian_forms_give_the_same_solver_quantities(ggx, model_name):
+    """Kept per sample or assembled, the Jacobian gives the same predictions, products, gradient and per-texel
+    blocks (float32 samples, as the solver keeps them: to float32 rounding), over several linearisations and, for
+    Lambert, from the stored affine linearisation."""
+    sc, fp, _, T = ggx if model_name == "ggx-lambert" else _scene("lambert")
+    model, layout = sc.model, Layout.of(sc.model)
+    sel = fp.select(torch.arange(fp.n_pixels) % 3 == 0)
+    gen = torch.Generator().manual_seed(5)
+    u = torch.randn(T * T, layout.P, generator=gen, dtype=torch.float64)
+    v = torch.randn(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
+    w = torch.rand(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
+    ops = {form: PixelOperator(sel, T * T, jacobian=form) for form in ("assembled", "samples")}
+    for step in range(2):
+        canon = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+        got = {}
+        for form, op in ops.items():
+            pred, C = op.linearise(model, layout, canon, param_groups(layout))
+            g, B = op.normal(C, w, w * v)
+            got[form] = (pred, op.predict(model, layout, canon * 0.9), op.apply(C, u), op.apply_t(C, v), g, B)
+            if form == "samples":                            # the samples' values, in their precision
+                assert C.JcT.shape == (len(C.cs), sel.n_samples) and C.JcT.dtype == torch.float32
+        for a, b in zip(got["assembled"], got["samples"], strict=True):
+            assert torch.allclose(a, b, rtol=2e-5, atol=2e-6 * float(a.abs().max())), step
+    assert ops["samples"].affine == (model_name == "lambert") == ops["assembled"].affine
+
+
+def test_auto_keeps_the_jacobian_per_sample_when_memory_is_short(ggx, monkeypatch):
+    """``jacobian="auto"`` assembles the matrices unless their E·k non-zeros (16 bytes each) would take more than
+    ASSEMBLED_SHARE of the memory available; it decides once, at the first linearisation, and assembles where the
+    memory cannot be known. A form that is not one of the three is refused by name, here and in FitOptions."""
+    import capture.fit.operators as ops
+    from capture.fit import FitOptions
+    from capture.fit.layout import SolverError
+
+    sc, fp, _, T = ggx
+    model, layout = sc.model, Layout.of(sc.model)
+    sel = fp.select(torch.arange(fp.n_pixels) % 9 == 0)
+    canon = torch.full((T * T, layout.P), 0.4, dtype=torch.float64)
+    probe = PixelOperator(sel, T * T, jacobian="assembled")
+    _, C = probe.linearise(model, layout, canon, param_groups(layout))
+    need = probe.E * len(C.cs) * 16
+    for avail, form in ((int(need / ASSEMBLED_SHARE) + 64, "assembled"), (int(need / ASSEMBLED_SHARE) - 64, "samples"),
+                        (None, "assembled")):
+        monkeypatch.setattr(ops, "available_memory", lambda device, a=avail: a)
+        op = pixel_operator(sel, T * T, "auto")
+        assert op.jacobian_form is None
+        op.linearise(model, layout, canon, param_groups(layout))
+        assert op.jacobian_form == form
+        monkeypatch.setattr(ops, "available_memory", lambda device: 0)
+        op.linearise(model, layout, canon * 1.1, param_groups(layout))
+        assert op.jacobian_form == form                      # decided once
+    with pytest.raises(SolverError, match="jacobian must be one of"):
+        PixelOperator(sel, T * T, jacobian="dense")
+    with pytest.raises(SolverError, match="jacobian must be one of"):
+        FitOptions(jacobian="sparse")
 
 
 def test_predict_rows_is_predict_on_a_block_of_samples(ggx):
