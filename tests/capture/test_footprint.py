@@ -113,11 +113,15 @@ def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx, form):
         assert torch.allclose(op.apply_t(C, op.apply(C, e))[t], B[t, :, p], rtol=1e-10, atol=1e-14)
 
 
-def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatch):
+@pytest.mark.parametrize("first_block", ["all pairs", "without roughness"])
+def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatch, first_block):
     """The operator evaluates the samples' Jacobian and radiance in blocks of samples and places the values in its
     matrices block by block (bounded memory): with blocks of a few dozen samples / entries — many blocks, ragged
-    ends — the predictions, products and per-texel blocks equal those of one block each (float64)."""
+    ends — the predictions, products and per-texel blocks equal those of one block each (float64). Also when the
+    first block lacks pairs the later ones have (f0 = 0 wherever it reads: no roughness derivative there), so the
+    kept columns grow on the way."""
     import capture.fit.operators as ops
+    from capture.fit.texel import jacobian_blocks
 
     sc, fp, _, T = ggx
     model, layout = sc.model, Layout.of(sc.model)
@@ -125,6 +129,17 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
     sel.samples = sel.samples.to(dtype=torch.float64)
     gen = torch.Generator().manual_seed(3)
     canon = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    if first_block == "without roughness":        # F = none: the lobe is f0 · D G, so no roughness slope at f0 = 0
+        from capture.dataset import model_from_spec
+
+        model = model_from_spec("lambert+microfacet(D=ggx, F=none, G=smith)")
+        assert Layout.of(model).specs == layout.specs
+        read = PixelOperator(sel, T * T).gather_op.to_dense()[:97].abs().sum(0) > 0     # texels of samples 0 … 96
+        canon[read[:, None] & torch.isin(torch.arange(layout.P), torch.tensor(layout.cols("f0")))[None]] = 0.0
+        phi = PixelOperator(sel, T * T).gather_op @ canon
+        masks = [(Jb != 0).any(0) for *_, Jb in jacobian_blocks(model, layout, sel.samples, phi,
+                                                                 param_groups(layout), canonical=True, block=97)]
+        assert any(bool((m & ~masks[0]).any()) for m in masks[1:])      # a later block brings pairs
     u = torch.randn(T * T, layout.P, generator=gen, dtype=torch.float64)
     v = torch.randn(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
     w = torch.rand(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
