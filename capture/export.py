@@ -81,8 +81,9 @@ GLTF_DIELECTRIC_F0 = 0.04
 COMPENSATIONS = ("none", "layering", "layering+multiscatter")
 #: The default of :data:`COMPENSATIONS`: current viewers dim the diffuse under the dielectric layer (glTF's own BRDF,
 #: Blender ≥ 4) and give back the energy a rough GGX lobe loses to single scattering (Blender ≥ 4's Multiscatter
-#: GGX, three.js's ``BRDF_GGX_Multiscatter``, Filament's energy compensation). The demo's GLB in Blender 4.2's
-#: Cycles, 16 views, mean PSNR on object pixels: 44.5 dB with ``layering``, 45.8 dB with this (docs/export.md).
+#: GGX, three.js's ``BRDF_GGX_Multiscatter``, Filament's energy compensation). The demo's GLB in the Cycles of
+#: Blender 4.2 and 5.0.1, 16 views, mean PSNR on object pixels: 44.5 dB with ``layering``, 45.8 dB with this
+#: (docs/export.md).
 DEFAULT_COMPENSATION = "layering+multiscatter"
 #: GLB material models: glTF's metallic-roughness (metals as metallic = 1) or the metallic = 0 + specular form.
 MATERIAL_MODELS = ("metallic-roughness", "specular")
