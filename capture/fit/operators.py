@@ -355,7 +355,7 @@ class PixelOperator:
         # Each block's values go straight into Jc, which grows (a copy) when a block brings a pair the earlier ones
         # lacked: keeping the blocks' values until all were seen held a second Jc (0.38 GB on 32 × 512² photos)
         mask = torch.zeros(3, P, dtype=torch.bool, device=phi.device)
-        Jc = None
+        Jc = where = None                               # where: each kept pair's column in Jc
         for a, b, pb, Jb in jacobian_blocks(model, layout, so, phi, groups, canonical=True,
                                               block=block_size(JACOBIAN_BLOCK, phi.device)):
             pred[a:b] = pb
@@ -363,11 +363,12 @@ class PixelOperator:
             if Jc is None or bool((m & ~mask).any()):
                 union = mask | m
                 grown = torch.zeros(S, int(union.sum()), dtype=ACC, device=phi.device)
+                new_where = torch.cumsum(union.reshape(-1), 0).reshape(3, P) - 1
                 if Jc is not None:
-                    grown[:, (torch.cumsum(union.reshape(-1), 0).reshape(3, P) - 1)[mask]] = Jc
-                Jc, mask = grown, union
+                    grown[:, new_where[mask]] = Jc
+                Jc, mask, where = grown, union, new_where
             cs, ps = torch.nonzero(m, as_tuple=True)
-            Jc[a:b, (torch.cumsum(mask.reshape(-1), 0).reshape(3, P) - 1)[m]] = Jb[:, cs, ps]
+            Jc[a:b, where[m]] = Jb[:, cs, ps]
             del Jb
         del phi
         if Jc is None:                                  # no samples
