@@ -18,15 +18,17 @@ the GPU differ in the last bits, which a poorly determined fit can amplify.
 from __future__ import annotations
 
 import functools
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import TypeVar
 
 import torch
 
 __all__ = ["DEVICES", "DeviceError", "resolve_device", "per_view", "release_memory", "CUDA_BLOCK_FACTOR", "block_size",
-           "tune_allocator", "MMAP_THRESHOLD", "TRIM_THRESHOLD", "available_memory"]
+           "tune_allocator", "MMAP_THRESHOLD", "TRIM_THRESHOLD", "available_memory", "cgroup_memory_headroom"]
 
 _R = TypeVar("_R")
 _PARALLEL = threading.Lock()
@@ -153,11 +155,19 @@ def tune_allocator() -> bool:
 def available_memory(device: torch.device | str = "cpu") -> int | None:
     """Bytes that new tensors on ``device`` can take now: on a GPU the free memory the driver reports, on the CPU
     Linux's estimate of what can be allocated without swapping (``MemAvailable`` of ``/proc/meminfo``: free
-    memory plus the caches it can drop). None where it cannot be known (another system, no such line)."""
+    memory plus the caches it can drop), and no more than the process's memory cgroup leaves it
+    (:func:`cgroup_memory_headroom`: a container's or a batch job's limit, which ``/proc/meminfo`` does not show).
+    None where neither can be known (another system)."""
     dev = torch.device(device)
     if dev.type == "cuda":
         free, _total = torch.cuda.mem_get_info(dev)
         return int(free)
+    known = [b for b in (_meminfo_available(), cgroup_memory_headroom()) if b is not None]
+    return min(known) if known else None
+
+
+def _meminfo_available() -> int | None:
+    """``MemAvailable`` of ``/proc/meminfo`` in bytes; None without the file or the line."""
     try:
         with open("/proc/meminfo", encoding="ascii") as f:
             for line in f:
@@ -166,6 +176,67 @@ def available_memory(device: torch.device | str = "cpu") -> int | None:
     except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+#: cgroup v1 writes "no limit" as the largest page-aligned 63-bit number; any limit from 2⁶⁰ bytes up is taken as none.
+_NO_LIMIT = 1 << 60
+
+
+def cgroup_memory_headroom(cgroup_file: str | os.PathLike = "/proc/self/cgroup",
+                           root: str | os.PathLike = "/sys/fs/cgroup") -> int | None:
+    """Bytes the process's memory cgroup lets it allocate before the limit: at its own level and every ancestor's
+    with a limit, ``limit − usage + inactive file pages`` (page cache the kernel reclaims before it would kill), the
+    smallest of them. cgroup v2 (``memory.max``, ``memory.current``, ``memory.stat``) or v1 (the ``memory``
+    controller's ``memory.limit_in_bytes``, ``memory.usage_in_bytes``, ``total_inactive_file``), found from
+    ``cgroup_file`` (the ``/proc/self/cgroup`` lines ``id:controllers:path``) under ``root``. None where no level
+    sets a limit or nothing can be read (not Linux, no cgroup file system)."""
+    try:
+        lines = Path(cgroup_file).read_text(encoding="ascii").splitlines()
+    except OSError:
+        return None
+    levels = []                         # (folder, limit file, usage file, inactive-file key)
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        _, controllers, path = parts
+        if controllers == "":
+            levels.append((Path(root), "memory.max", "memory.current", "inactive_file", path))
+        elif "memory" in controllers.split(","):
+            levels.append((Path(root) / "memory", "memory.limit_in_bytes", "memory.usage_in_bytes",
+                           "total_inactive_file", path))
+    headroom = None
+    for base, limit_name, usage_name, inactive_key, path in levels:
+        folder = base / path.lstrip("/")
+        while True:
+            room = _cgroup_level_headroom(folder, limit_name, usage_name, inactive_key)
+            if room is not None:
+                headroom = room if headroom is None else min(headroom, room)
+            if folder == base or base not in folder.parents:
+                break
+            folder = folder.parent
+    return headroom
+
+
+def _cgroup_level_headroom(folder: Path, limit_name: str, usage_name: str, inactive_key: str) -> int | None:
+    """One cgroup level's ``limit − usage + inactive file pages`` (≥ 0); None without a limit or its files."""
+    try:
+        limit = (folder / limit_name).read_text(encoding="ascii").strip()
+        if limit == "max" or int(limit) >= _NO_LIMIT:
+            return None
+        usage = int((folder / usage_name).read_text(encoding="ascii").strip())
+    except (OSError, ValueError):
+        return None
+    inactive = 0
+    try:
+        for line in (folder / "memory.stat").read_text(encoding="ascii").splitlines():
+            key, _, value = line.partition(" ")
+            if key == inactive_key:
+                inactive = int(value)
+                break
+    except (OSError, ValueError):
+        pass
+    return max(int(limit) - usage + inactive, 0)
 
 
 def block_size(cpu_block: int, device: torch.device | str) -> int:

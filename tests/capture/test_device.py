@@ -136,6 +136,7 @@ def test_available_memory_reads_memavailable_and_says_none_where_it_cannot(monke
 
     import renderer.device as device
 
+    monkeypatch.setattr(device, "cgroup_memory_headroom", lambda: None)          # whatever this machine's cgroup
     real_open = builtins.open
 
     def fake(text):
@@ -153,3 +154,43 @@ def test_available_memory_reads_memavailable_and_says_none_where_it_cannot(monke
 
     monkeypatch.setattr(builtins, "open", missing)
     assert device.available_memory(torch.device("cpu")) is None
+
+
+def test_cgroup_headroom_is_the_tightest_limit_less_usage_plus_reclaimable_cache(monkeypatch, tmp_path):
+    # v2: the process's own cgroup and its ancestors (a container's limit sits above the job's); "max" is no limit
+    import renderer.device as device
+
+    v2 = tmp_path / "v2"
+    for folder, limit, usage, inactive in (("", None, None, None), ("pod", "8000", "5000", 1000),
+                                           ("pod/job", "max", "4000", 500)):
+        d = v2 / folder
+        d.mkdir(parents=True, exist_ok=True)
+        if limit is not None:
+            (d / "memory.max").write_text(limit + "\n")
+            (d / "memory.current").write_text(usage + "\n")
+            (d / "memory.stat").write_text(f"anon 123\ninactive_file {inactive}\nactive_file 9\n")
+    (tmp_path / "cg2").write_text("0::/pod/job\n")
+    assert device.cgroup_memory_headroom(tmp_path / "cg2", v2) == 8000 - 5000 + 1000
+    (v2 / "pod" / "job" / "memory.max").write_text("4200\n")                   # the job's own limit is tighter
+    assert device.cgroup_memory_headroom(tmp_path / "cg2", v2) == 4200 - 4000 + 500
+    # v1: the memory controller's line; 2^63 rounded down to a page is "no limit"; usage above the limit gives 0
+    v1 = tmp_path / "v1" / "memory" / "docker" / "abc"
+    v1.mkdir(parents=True)
+    (v1 / "memory.limit_in_bytes").write_text("2000\n")
+    (v1 / "memory.usage_in_bytes").write_text("1500\n")
+    (v1 / "memory.stat").write_text("inactive_file 7\ntotal_inactive_file 300\n")
+    (v1.parent / "memory.limit_in_bytes").write_text("9223372036854771712\n")
+    (v1.parent / "memory.usage_in_bytes").write_text("99999\n")
+    (tmp_path / "cg1").write_text("5:cpu,cpuacct:/docker/abc\n4:memory:/docker/abc\n0::/\n")
+    assert device.cgroup_memory_headroom(tmp_path / "cg1", tmp_path / "v1") == 2000 - 1500 + 300
+    (v1 / "memory.usage_in_bytes").write_text("2600\n")
+    assert device.cgroup_memory_headroom(tmp_path / "cg1", tmp_path / "v1") == 0
+    # no limit anywhere, no files, no cgroup file: None; available_memory takes the tighter of the two
+    (tmp_path / "cg0").write_text("0::/\n")
+    assert device.cgroup_memory_headroom(tmp_path / "cg0", v2) is None
+    assert device.cgroup_memory_headroom(tmp_path / "missing", v2) is None
+    monkeypatch.setattr(device, "_meminfo_available", lambda: 10_000)
+    monkeypatch.setattr(device, "cgroup_memory_headroom", lambda: 700)
+    assert device.available_memory("cpu") == 700
+    monkeypatch.setattr(device, "cgroup_memory_headroom", lambda: None)
+    assert device.available_memory("cpu") == 10_000
