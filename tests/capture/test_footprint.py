@@ -217,6 +217,19 @@ def test_auto_keeps_the_jacobian_per_sample_when_memory_is_short(ggx, monkeypatc
         FitOptions(jacobian="sparse")
 
 
+def test_the_gather_operator_shares_the_taps_storage(ggx):
+    """The texels → samples operator is the footprints' own taps (sample-major): its column indices and values are
+    the taps' tensors, not copies, and it reads the maps as the taps do."""
+    sc, fp, _, T = ggx
+    taps = fp.samples.taps
+    assert taps.index.dtype == torch.int32 and taps.weight.dtype == fp.samples.dtype == torch.float32
+    op = PixelOperator(fp, T * T)
+    assert op.gather_op.col_indices().data_ptr() == taps.index.data_ptr()
+    assert op.gather_op.values().data_ptr() == taps.weight.data_ptr()
+    flat = torch.rand(T * T, 3, generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close(op.gather_op @ flat, taps.read(flat), rtol=1e-6, atol=1e-7)
+
+
 def test_predict_rows_is_predict_on_a_block_of_samples(ggx):
     """Observations.predict_rows over consecutive ranges gives predict's rows; a range outside the samples is
     refused with the bounds."""
