@@ -194,7 +194,7 @@ def cgroup_memory_headroom(cgroup_file: str | os.PathLike = "/proc/self/cgroup",
         lines = Path(cgroup_file).read_text(encoding="ascii").splitlines()
     except OSError:
         return None
-    levels = []                         # (folder, limit file, usage file, inactive-file key)
+    levels = []             # (the hierarchy's root folder, limit file, usage file, inactive-file key, the path)
     for line in lines:
         parts = line.split(":", 2)
         if len(parts) != 3:
