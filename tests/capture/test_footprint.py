@@ -134,9 +134,10 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
 
         model = model_from_spec("lambert+microfacet(D=ggx, F=none, G=smith)")
         assert Layout.of(model).specs == layout.specs
-        read = PixelOperator(sel, T * T).gather_op.to_dense()[:97].abs().sum(0) > 0     # texels of samples 0 … 96
+        gather = PixelOperator(sel, T * T).gather_op
+        read = gather.to_dense()[:97].abs().sum(0) > 0                                  # texels of samples 0 … 96
         canon[read[:, None] & torch.isin(torch.arange(layout.P), torch.tensor(layout.cols("f0")))[None]] = 0.0
-        phi = PixelOperator(sel, T * T).gather_op @ canon
+        phi = gather @ canon
         masks = [(Jb != 0).any(0) for *_, Jb in jacobian_blocks(model, layout, sel.samples, phi,
                                                                  param_groups(layout), canonical=True, block=97)]
         assert any(bool((m & ~masks[0]).any()) for m in masks[1:])      # a later block brings pairs
