@@ -61,7 +61,7 @@ from renderer.device import per_view
 from renderer.gbuffer import footprint_extent, pixel_filter, render_footprint
 from renderer.shading import prepare
 
-from .observations import ObservationError, Observations, TexelTaps, noise_residual, observe_views
+from .observations import ObservationError, Observations, TexelTaps, ViewExtractor, noise_residual
 
 __all__ = ["PixelFootprints", "observe_footprints", "footprint_counts", "texture_footprints", "FOOTPRINT_SPACING",
            "FOOTPRINT_MAX", "FOOTPRINT_TEXTURE_MAX", "SEAM_TEXELS"]
@@ -398,7 +398,11 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         raise ObservationError(f"observe_footprints: need one camera, light list, centre G-buffer and photo per "
                                f"view, got {n}, {len(lights_per_view)}, {len(centre_gbuffers)}, {len(photos)}")
 
-    def one(vi):                                # one view's rays, texture footprints and shading terms
+    extractor = ViewExtractor(n, map_size, clipped=clipped, footprints=True, dtype=dtype)
+
+    def one(vi):
+        # one view's rays, texture footprints and shading terms, made into its kept samples at once: the prepared
+        # rays of all views held until every view was made took twice the samples' memory more
         pixels, k, kt, f = footprint_counts(centre_gbuffers[vi], map_size, photos[vi], psf_sigma)
         g = render_footprint(mesh, cameras[vi], pixels, k, psf_sigma=psf_sigma)
         cast = int((k * k).sum())
@@ -417,17 +421,17 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         share, taps = texture_footprints(mesh, cameras[vi], g, k_of[g.pixel], kt_of[g.pixel], map_size, psf_sigma)
         g.weight = share.to(g.weight.dtype)
         sub = int(((k_of * _sub_samples(k_of, kt_of))[whole] ** 2).sum())
-        prep = prepare(g, mesh, lights_per_view[vi], shadows=shadows)
+        part = extractor.view(vi, prepare(g, mesh, lights_per_view[vi], shadows=shadows), photos[vi], taps)
         kk = torch.zeros(HW, dtype=torch.long)
         kk[pixels] = k * k
         ff = torch.zeros(HW, dtype=torch.float64)
         ff[pixels] = f
-        return prep, taps, kk, ff, cast, uniform, partial, sub
+        return part, kk, ff, cast, uniform, partial, sub
 
-    preps, texels, counts, fps, *tallies = zip(*per_view(one, n), strict=True)
+    parts, counts, fps, *tallies = zip(*per_view(one, n), strict=True)
     cast, uniform, partial, sub = (sum(t) for t in tallies)
-    samples = observe_views(preps, photos, map_size, lights=lights, bilinear=True, dtype=dtype, clipped=clipped,
-                            footprints=True, texels=texels)
+    samples = extractor.observations(list(parts), lights=lights, bilinear=True)
+    del parts
     # group the kept samples by (view, pixel): every sample of a kept pixel survives (only unlit ones are dropped,
     # and they contribute 0), so a pixel's value is Σ share · L over its kept samples
     key = samples.view * (max(h * w for h, w in samples.image_size) + 1) + samples.pixel

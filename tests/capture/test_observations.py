@@ -168,3 +168,81 @@ def test_texel_taps_read_select_cat_and_move_like_the_padded_rows():
     assert torch.allclose(blocks.read(flat), (flat[idx] * w5[..., None]).sum(1), rtol=0, atol=1e-12)
     row0 = int(a[0])
     assert torch.equal(blocks.index[blocks.start[row0]:blocks.start[row0 + 1]].long(), idx[row0][w[row0] != 0])
+
+
+def _two_view_sphere(swap: bool = True):
+    """Two views of a lit sphere, prepared, with their photos and the scene's lights; the second view lists its
+    lights in the other order than the scene when ``swap``."""
+    from renderer.camera import look_at
+    from renderer.gbuffer import render_gbuffer
+    from renderer.lights import PointLight
+    from renderer.mesh import uv_sphere
+    from renderer.shading import prepare, shade
+
+    mesh = uv_sphere(segments=24, rings=12)
+    lights = [PointLight((3.0, -1.0, 0.0), 9.0), PointLight((-2.0, -2.0, 1.0), 4.0)]
+    cams = [look_at((0.0, -3.0, 0.0), width=32, height=32), look_at((2.0, -2.0, 1.0), width=40, height=40)]
+    views = [[lights[0]], [lights[1], lights[0]] if swap else lights]
+    model = materials.get("lambert")
+    maps = {"albedo": torch.rand(16, 16, 3, generator=torch.Generator().manual_seed(1))}
+    preps, photos = [], []
+    for cam, lt in zip(cams, views, strict=True):
+        g = render_gbuffer(mesh, cam)
+        preps.append(prepare(g, mesh, lt))
+        photos.append(g.to_image(shade(model, maps, preps[-1], sampling="nearest")))
+    return preps, photos, lights
+
+
+def test_view_extractor_one_view_at_a_time_equals_observe_views():
+    from capture.observations import ViewExtractor
+
+    preps, photos, lights = _two_view_sphere()
+    for given in (lights, None):                             # None: the first view's lights
+        whole = observe_views(preps, photos, (16, 16), lights=given, bilinear=True, exposure=[1.0, 2.0])
+        ex = ViewExtractor(2, (16, 16), exposure=[1.0, 2.0])
+        parts = [ex.view(i, preps[i], photos[i]) for i in range(2)]
+        streamed = ex.observations(parts, lights=given, bilinear=True)
+        for f in ("texel", "radiance", "weight", "pair_sample", "pair_light", "irradiance", "view", "pixel", "uv",
+                  "n", "v", "bilinear_index", "bilinear_weight", "noise_residual"):
+            a, b = getattr(whole, f), getattr(streamed, f)
+            assert a.shape == b.shape and torch.allclose(a, b, rtol=0, atol=0, equal_nan=True), f
+        assert whole.drops == streamed.drops and whole.n_lights == streamed.n_lights
+        # the pairs name the scene's lights, not a view's own order of them (by default the first view's lights:
+        # the second light, which the first view lacks, is then -1)
+        pair_view = whole.view[whole.pair_sample]
+        assert set(whole.pair_light[pair_view == 0].tolist()) == {0}
+        assert set(whole.pair_light[pair_view == 1].tolist()) == ({0, 1} if given else {0, -1})
+    # the same pairs, each with the same light and irradiance, as when the view lists its lights in the scene's order
+    o_preps, o_photos, o_lights = _two_view_sphere(swap=False)
+    ordered = observe_views(o_preps, o_photos, (16, 16), lights=o_lights)
+    whole = observe_views(preps, photos, (16, 16), lights=lights)
+
+    def pairs(o):
+        return sorted(zip(o.pair_sample.tolist(), o.pair_light.tolist(), o.irradiance[:, 0].tolist(), strict=True))
+    assert pairs(whole) == pairs(ordered)
+
+
+def test_view_extractor_refuses_what_it_cannot_join():
+    import pytest
+
+    from capture.observations import ObservationError, TexelTaps, ViewExtractor
+
+    preps, photos, lights = _two_view_sphere()
+    ex = ViewExtractor(2, (16, 16))
+    with pytest.raises(ObservationError, match="outside the 2 views"):
+        ex.view(2, preps[0], photos[0])
+    with pytest.raises(ObservationError, match="need the 2 views"):
+        ex.observations([ex.view(0, preps[0], photos[0])])
+    parts = [ex.view(i, preps[i], photos[i]) for i in range(2)]
+    ex.observations(parts, lights=lights)
+    with pytest.raises(ObservationError, match="already joined"):
+        ex.observations(parts, lights=lights)
+    # one view with texture footprints and the other without
+    fx = ViewExtractor(2, (16, 16), footprints=True)
+    n0 = preps[0].gbuffer.pixel.numel()
+    taps = TexelTaps(torch.arange(n0 + 1), torch.zeros(n0, dtype=torch.int32), torch.ones(n0))
+    mixed = [fx.view(0, preps[0], photos[0], taps), fx.view(1, preps[1], photos[1])]
+    with pytest.raises(ObservationError, match="some views have texture footprints"):
+        fx.observations(mixed, bilinear=True)
+    with pytest.raises(ObservationError, match="one mask per view"):
+        ViewExtractor(2, (16, 16), clipped=[torch.zeros(32, 32, dtype=torch.bool)])
