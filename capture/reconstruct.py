@@ -576,6 +576,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         renders = _rerender_views(report, data, fitted, seen, pred)
 
     report.memory = _peak_memory()
+    _report_budget(report, seen.options.get("memory_budget"))
     _write_outputs(inputs.out_dir, data.ds, fitted.fit, seen.obs, renders, seen.photos, report, times, force,
                    max_grid_views, spt, vpt, known_maps, prog)
     return report
@@ -1403,9 +1404,28 @@ def _peak_memory() -> dict:
     return out
 
 
+def _report_budget(report: Report, budget: float | None) -> None:
+    """With a memory budget (GiB, ``FitOptions.memory_budget``): ``report.memory["budget_bytes"]``, and a warning
+    when the peak went above it, saying what the budget sized and what it did not."""
+    if budget is None:
+        return
+    limit = int(budget * 2 ** 30)
+    report.memory["budget_bytes"] = limit
+    peak = report.memory.get("cuda_peak_bytes" if report.device.startswith("cuda") else "peak_rss_bytes")
+    if peak is not None and peak > limit:
+        form = report.fit.get("footprint_jacobian")
+        pixels = report.samples.get("footprints", {}).get("pixels", report.samples.get("valid"))
+        report.warnings.append(
+            f"peak memory {peak / 2 ** 30:.2f} GiB went above the memory budget of {budget:g} GiB: the budget sizes "
+            f"only the footprint solve's Jacobian (kept {form or 'as asked'}); the observations of the {pixels} "
+            f"observed pixels and their pixel operator are held whole. Fit fewer views (--holdout) or smaller maps "
+            f"(--texture-size), or raise the budget")
+
+
 def _memory_text(memory: Mapping[str, int]) -> str:
     parts = [f"{name} {memory[key] / 2 ** 30:.2f} GiB" for key, name in
-             (("peak_rss_bytes", "peak memory"), ("cuda_peak_bytes", "CUDA peak")) if key in memory]
+             (("peak_rss_bytes", "peak memory"), ("cuda_peak_bytes", "CUDA peak"), ("budget_bytes", "budget"))
+             if key in memory]
     return ("  " + "  ".join(parts)) if parts else ""
 
 

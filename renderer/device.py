@@ -28,7 +28,8 @@ from typing import TypeVar
 import torch
 
 __all__ = ["DEVICES", "DeviceError", "resolve_device", "per_view", "release_memory", "CUDA_BLOCK_FACTOR", "block_size",
-           "tune_allocator", "MMAP_THRESHOLD", "TRIM_THRESHOLD", "available_memory", "cgroup_memory_headroom"]
+           "tune_allocator", "MMAP_THRESHOLD", "TRIM_THRESHOLD", "available_memory", "cgroup_memory_headroom",
+           "resident_memory", "memory_headroom"]
 
 _R = TypeVar("_R")
 _PARALLEL = threading.Lock()
@@ -163,6 +164,35 @@ def available_memory(device: torch.device | str = "cpu") -> int | None:
         free, _total = torch.cuda.mem_get_info(dev)
         return int(free)
     known = [b for b in (_meminfo_available(), cgroup_memory_headroom()) if b is not None]
+    return min(known) if known else None
+
+
+def resident_memory(device: torch.device | str = "cpu") -> int | None:
+    """Bytes the process holds now on ``device``: on the CPU its resident memory (``VmRSS`` of
+    ``/proc/self/status``), on a GPU what torch's caching allocator has reserved there. None where it cannot be
+    known (another system)."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        return int(torch.cuda.memory_reserved(dev))
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024          # the file's unit is kiB
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def memory_headroom(device: torch.device | str = "cpu", budget: int | None = None) -> int | None:
+    """Bytes new tensors on ``device`` may take now: :func:`available_memory`, and with a ``budget`` (bytes the
+    whole process may hold there) no more than the budget less what it holds (:func:`resident_memory`; 0 when it
+    holds more). None where neither can be known."""
+    known = [available_memory(device)]
+    if budget is not None:
+        held = resident_memory(device)
+        known.append(max(budget - held, 0) if held is not None else budget)
+    known = [b for b in known if b is not None]
     return min(known) if known else None
 
 

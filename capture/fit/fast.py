@@ -371,7 +371,7 @@ def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float) -
         raise SolverError("refine_from runs only the footprint steps: give the photos' pixel footprints "
                           "(footprints=...)")
     theta = init_theta(model, layout, obs, maps).to(ACC)
-    footprints = pixel_operator(footprints, obs.n_texels, opts.jacobian)
+    footprints = pixel_operator(footprints, obs.n_texels, opts.jacobian, opts.memory_budget_bytes)
     share = bool(shared_default(layout)) and opts.share is not False
     steps = (FOOTPRINT_STEPS if all(s.linear for s in layout.specs) else PYRAMID_STEPS) \
         if opts.footprint_iterations is None else int(opts.footprint_iterations)
@@ -472,7 +472,7 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
         history.append(jinfo["joint_history"][-1])
     if footprints is not None:
         release_memory()                                # (what the pixel-centre stages freed, before the largest)
-        footprints = pixel_operator(footprints, T, opts.jacobian)   # once, for the footprint steps and the posterior
+        footprints = pixel_operator(footprints, T, opts.jacobian, opts.memory_budget_bytes)  # once, for all stages
         theta, finfo = _footprint_stage(fit, theta, footprints, share, sharing)
         if finfo is not None:
             info.update(_footprint_info(finfo))

@@ -11,14 +11,14 @@ import torch
 from torch import Tensor
 
 from materials.model import Model
-from renderer.device import available_memory, block_size
+from renderer.device import block_size, memory_headroom
 
 from .layout import ACC, Layout, SolverError
 from .texel import JACOBIAN_BLOCK, jacobian_blocks
 
 __all__ = ["CsrPattern", "csr_matrix", "sampling_operator", "PixelJacobian", "SampleJacobian", "PixelOperator",
            "pixel_operator", "AFFINE_TOL", "NORMAL_BLOCK", "JACOBIAN_FORMS", "ASSEMBLED_SHARE",
-           "check_jacobian_form"]
+           "check_jacobian_form", "check_memory_budget"]
 
 #: Largest difference, relative to the largest pixel value, between the model evaluated at other parameter values
 #: and the prediction of its Jacobian for the model to count as affine (:meth:`PixelOperator.linearise`): the
@@ -217,8 +217,9 @@ class PixelOperator:
     ``Σ_i C_itᵀ W_i C_it`` (the preconditioner, and the posterior's information) are exact.
     """
 
-    def __init__(self, fp, T: int, jacobian: str = "auto"):
+    def __init__(self, fp, T: int, jacobian: str = "auto", memory_budget: int | None = None):
         check_jacobian_form(jacobian)
+        check_memory_budget(memory_budget)
         so = fp.samples
         if so.taps is None:
             raise SolverError("pixel footprints need each sample's texture footprint (observe_footprints builds it)")
@@ -266,6 +267,7 @@ class PixelOperator:
         self._affine_checked = False
         self._blocks = None             # (J, w, blocks) of the last normal(), reused while both are unchanged
         self.jacobian = jacobian        # the form asked for (JACOBIAN_FORMS)
+        self.memory_budget = memory_budget      # bytes the process may hold (None: what the machine has)
         self.jacobian_form = None       # the form used, decided at the first linearisation
         self._gather_t = None           # gather_op's transpose, made for the first product of the samples' form
 
@@ -383,11 +385,12 @@ class PixelOperator:
     def _form(self, k: int, device: torch.device) -> str:
         """The Jacobian's form (:data:`JACOBIAN_FORMS`), decided once, at the first linearisation, for ``k`` kept
         pairs: ``"auto"`` is ``"assembled"`` unless its ``E·k`` non-zeros would take more than
-        :data:`ASSEMBLED_SHARE` of the memory available (or that cannot be known)."""
+        :data:`ASSEMBLED_SHARE` of the memory available — what the machine has, and within ``memory_budget`` what
+        the budget leaves (:func:`renderer.device.memory_headroom`) — or that cannot be known."""
         if self.jacobian_form is None:
             form = self.jacobian
             if form == "auto":
-                avail = available_memory(device)
+                avail = memory_headroom(device, self.memory_budget)
                 need = self.E * k * ASSEMBLED_BYTES
                 form = "samples" if avail is not None and need > ASSEMBLED_SHARE * avail else "assembled"
             self.jacobian_form = form
@@ -511,13 +514,22 @@ def check_jacobian_form(jacobian) -> None:
                           f"Jacobian), got {jacobian!r}")
 
 
-def pixel_operator(footprints, T: int, jacobian: str = "auto") -> PixelOperator:
+def check_memory_budget(budget) -> None:
+    """A :class:`SolverError` unless ``budget`` is None or a positive whole number of bytes."""
+    if budget is not None and (isinstance(budget, bool) or not isinstance(budget, int) or budget <= 0):
+        raise SolverError(f"memory_budget must be a positive number of bytes or None (what the machine has), "
+                          f"got {budget!r}")
+
+
+def pixel_operator(footprints, T: int, jacobian: str = "auto", memory_budget: int | None = None) -> PixelOperator:
     """``footprints`` as a :class:`PixelOperator` over ``T`` texels keeping its Jacobian in the form ``jacobian``
-    (:data:`JACOBIAN_FORMS`): an operator is passed through (built once by :func:`capture.fit.fast.solve_fast` for
-    all its stages, with its own form), pixel footprints are built into one."""
+    (:data:`JACOBIAN_FORMS`; ``"auto"`` within ``memory_budget`` bytes, None: the machine's memory): an operator is
+    passed through (built once by :func:`capture.fit.fast.solve_fast` for all its stages, with its own form), pixel
+    footprints are built into one."""
     check_jacobian_form(jacobian)
+    check_memory_budget(memory_budget)
     if isinstance(footprints, PixelOperator):
         if footprints.T != T:
             raise SolverError(f"the pixel operator covers {footprints.T} texels, the maps {T}")
         return footprints
-    return PixelOperator(footprints, T, jacobian)
+    return PixelOperator(footprints, T, jacobian, memory_budget)

@@ -101,6 +101,11 @@ class FitOptions:
             through the sampling operators), "auto" (default) assembled unless that would take more than
             :data:`capture.fit.operators.ASSEMBLED_SHARE` of the memory available. docs/image-formation.md, "Memory",
             has the two forms' memory and time.
+        memory_budget: GiB of memory the process may hold (None: what the machine, or its memory cgroup, has
+            available, :func:`renderer.device.available_memory`). ``jacobian="auto"`` keeps the assembled matrices
+            within what the budget leaves (:func:`renderer.device.memory_headroom`); nothing else is sized by it
+            yet — the observations and the pixel operator are held whole — so :func:`capture.reconstruct.reconstruct`
+            warns when the peak went above it.
         sharing_albedo: the joint refinement's prior links neighbouring texels' albedo too (default; see
             :func:`refine_joint` for the measurements). Where the photos determine a texel's albedo the data win;
             where they barely do (texels read only through a neighbour's bilinear footprint, the grazing band) it
@@ -149,6 +154,10 @@ class FitOptions:
                                       "matrices (fastest), per sample (less memory, slower steps), or auto: "
                                       "assembled unless they would take more than half the memory available",
                          choices=JACOBIAN_FORMS)
+    memory_budget: float | None = _cli(None, float, "GiB of memory the reconstruction may hold (default: what the "
+                                                    "machine, or its memory cgroup, has available): the footprint "
+                                                    "solve's auto Jacobian stays within it; the summary warns when "
+                                                    "the peak went above it", metavar="GIB")
 
     def __post_init__(self):
         check_loss(self.loss)
@@ -182,7 +191,17 @@ class FitOptions:
         if sampling not in ("nearest", "bilinear"):
             raise SolverError(f"sampling must be 'nearest' or 'bilinear', got {sampling!r}")
         check_jacobian_form(self.jacobian)
+        budget = self.memory_budget
+        if budget is not None and (isinstance(budget, bool) or not isinstance(budget, (int, float))
+                                   or not (budget > 0 and math.isfinite(budget))):
+            raise SolverError(f"memory_budget must be a positive number of GiB or None (what the machine has), got "
+                              f"{budget!r}")
         check_noise(self.noise)
+
+    @property
+    def memory_budget_bytes(self) -> int | None:
+        """``memory_budget`` in bytes (None: no budget)."""
+        return None if self.memory_budget is None else int(self.memory_budget * 2 ** 30)
 
     @classmethod
     def of(cls, options: FitOptions | None = None, **overrides) -> FitOptions:

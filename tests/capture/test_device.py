@@ -156,6 +156,22 @@ def test_available_memory_reads_memavailable_and_says_none_where_it_cannot(monke
     assert device.available_memory(torch.device("cpu")) is None
 
 
+def test_memory_headroom_is_what_the_machine_and_the_budget_leave(monkeypatch):
+    import renderer.device as device
+
+    assert device.resident_memory("cpu") > 0                        # this process's VmRSS
+    monkeypatch.setattr(device, "available_memory", lambda dev: 8_000)
+    monkeypatch.setattr(device, "resident_memory", lambda dev: 3_000)
+    assert device.memory_headroom("cpu") == 8_000                   # no budget: the machine's
+    assert device.memory_headroom("cpu", 10_000) == 7_000           # the budget less what the process holds
+    assert device.memory_headroom("cpu", 20_000) == 8_000           # ... but never more than the machine has
+    assert device.memory_headroom("cpu", 2_000) == 0                # a budget already spent leaves nothing
+    monkeypatch.setattr(device, "resident_memory", lambda dev: None)
+    assert device.memory_headroom("cpu", 5_000) == 5_000            # what the process holds unknown: the budget
+    monkeypatch.setattr(device, "available_memory", lambda dev: None)
+    assert device.memory_headroom("cpu") is None and device.memory_headroom("cpu", 5_000) == 5_000
+
+
 def test_cgroup_headroom_is_the_tightest_limit_less_usage_plus_reclaimable_cache(monkeypatch, tmp_path):
     # v2: the process's own cgroup and its ancestors (a container's limit sits above the job's); "max" is no limit
     import renderer.device as device

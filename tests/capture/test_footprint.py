@@ -191,7 +191,7 @@ def test_auto_keeps_the_jacobian_per_sample_when_memory_is_short(ggx, monkeypatc
     """``jacobian="auto"`` assembles the matrices unless their E·k non-zeros (16 bytes each) would take more than
     ASSEMBLED_SHARE of the memory available; it decides once, at the first linearisation, and assembles where the
     memory cannot be known. A form that is not one of the three is refused by name, here and in FitOptions."""
-    import capture.fit.operators as ops
+    import renderer.device as device
     from capture.fit import FitOptions
     from capture.fit.layout import SolverError
 
@@ -204,14 +204,29 @@ def test_auto_keeps_the_jacobian_per_sample_when_memory_is_short(ggx, monkeypatc
     need = probe.E * len(C.cs) * 16
     for avail, form in ((int(need / ASSEMBLED_SHARE) + 64, "assembled"), (int(need / ASSEMBLED_SHARE) - 64, "samples"),
                         (None, "assembled")):
-        monkeypatch.setattr(ops, "available_memory", lambda device, a=avail: a)
+        monkeypatch.setattr(device, "available_memory", lambda dev, a=avail: a)
         op = pixel_operator(sel, T * T, "auto")
         assert op.jacobian_form is None
         op.linearise(model, layout, canon, param_groups(layout))
         assert op.jacobian_form == form
-        monkeypatch.setattr(ops, "available_memory", lambda device: 0)
+        monkeypatch.setattr(device, "available_memory", lambda dev: 0)
         op.linearise(model, layout, canon * 1.1, param_groups(layout))
         assert op.jacobian_form == form                      # decided once
+    # within a memory budget: what the budget leaves beside what the process holds, however much the machine has
+    monkeypatch.setattr(device, "available_memory", lambda dev: 1 << 50)
+    monkeypatch.setattr(device, "resident_memory", lambda dev: 10_000)
+    for budget, form in ((10_000 + int(need / ASSEMBLED_SHARE) + 64, "assembled"),
+                         (10_000 + int(need / ASSEMBLED_SHARE) - 64, "samples"), (5_000, "samples")):
+        op = pixel_operator(sel, T * T, "auto", memory_budget=budget)
+        op.linearise(model, layout, canon, param_groups(layout))
+        assert op.jacobian_form == form, budget
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(SolverError, match="memory_budget must be a positive number of bytes"):
+            pixel_operator(sel, T * T, "auto", memory_budget=bad)
+    for bad in (0.0, -2.0, float("inf"), float("nan"), True, "4G"):
+        with pytest.raises(SolverError, match="memory_budget must be a positive number of GiB"):
+            FitOptions(memory_budget=bad)
+    assert FitOptions(memory_budget=1.5).memory_budget_bytes == 3 << 29 and FitOptions().memory_budget_bytes is None
     with pytest.raises(SolverError, match="jacobian must be one of"):
         PixelOperator(sel, T * T, jacobian="dense")
     with pytest.raises(SolverError, match="jacobian must be one of"):

@@ -65,6 +65,21 @@ def test_lambert_scene_recovered_exactly(lambert_ds, tmp_path):
     assert min(v["psnr"] for v in r["views"]) > 60
 
 
+def test_a_memory_budget_keeps_the_footprint_jacobian_per_sample_and_warns_when_the_peak_passes_it(lambert_ds,
+                                                                                                 tmp_path):
+    # 1 MiB: less than the process already holds, so auto keeps the Jacobian per sample, and the peak goes above it
+    rep = R.reconstruct(lambert_ds, model="ggx-lambert", out_dir=tmp_path / "b", progress=False, iterations=3,
+                        grid=4, footprint_iterations=1, memory_budget=1 / 1024)
+    assert rep.fit["footprint_jacobian"] == "samples" and rep.memory["budget_bytes"] == 2 ** 20
+    assert [w for w in rep.warnings if "went above the memory budget of 0.000976562 GiB" in w
+            and "(kept samples)" in w]
+    assert "budget 0.00 GiB" in (tmp_path / "b" / "summary.txt").read_text().splitlines()[0]
+    # a budget it stays within: no warning, the assembled matrices
+    rep = R.reconstruct(lambert_ds, model="ggx-lambert", out_dir=tmp_path / "c", progress=False, iterations=3,
+                        grid=4, footprint_iterations=1, memory_budget=1024.0)
+    assert rep.fit["footprint_jacobian"] == "assembled" and not [w for w in rep.warnings if "budget" in w]
+
+
 def test_no_error_at_the_truths_determined_texels_when_another_model_rendered_the_photos(lambert_ds, tmp_path):
     # the true maps are Lambert's: a GGX + Lambert fit has no true f0 / roughness to judge what the photos determine
     rep = reconstruct(lambert_ds, model="ggx-lambert", out_dir=tmp_path / "o", progress=False, iterations=5, grid=4)

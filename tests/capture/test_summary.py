@@ -60,3 +60,5 @@ def test_summary_first_line_reports_peak_memory():
     assert "peak memory" not in _summary(r).splitlines()[0]
     r.memory = {"peak_rss_bytes": 3 * 2 ** 30 // 2, "cuda_peak_bytes": 2 ** 30}
     assert _summary(r).splitlines()[0].endswith("  peak memory 1.50 GiB  CUDA peak 1.00 GiB")
+    r.memory["budget_bytes"] = 2 ** 31
+    assert _summary(r).splitlines()[0].endswith("  peak memory 1.50 GiB  CUDA peak 1.00 GiB  budget 2.00 GiB")
