@@ -225,17 +225,22 @@ class PixelOperator:
             raise SolverError("pixel footprints need each sample's texture footprint (observe_footprints builds it)")
         self.fp, self.T = fp, T
         self.R, S = fp.n_pixels, so.n_samples
-        # the footprints' (sample, texel, weight) triplets, sample-major
-        t_s, t_idx, t_w = so.taps.rows(), so.taps.index.long(), so.taps.weight.to(ACC)
-        dev = t_idx.device
-        coef = t_w * fp.share.to(ACC)[t_s]
-        # one stable sort of the (pixel, texel) keys gives the entries (its runs) and the samples → entries
-        # operator (its order), instead of a unique and a second sort
-        skey, perm = torch.sort(fp.group[t_s] * T + t_idx, stable=True)
+        dev = so.taps.index.device
+        # the footprints' (sample, texel, weight) triplets are the taps, sample-major. One stable sort of their
+        # (pixel, texel) keys gives the entries (its runs) and the samples → entries operator (its order), instead of
+        # a unique and a second sort. Each tap-sized temporary is freed as soon as it is used, the key made in place:
+        # holding them all (rows, texels and weights in 64 bits, the products, the sorted keys) took 2.7 GB above
+        # the operator on 32 × 512² photos (28 M taps), the peak of a fit that keeps its Jacobian per sample
+        key = fp.group[so.taps.rows()]
+        key.mul_(T).add_(so.taps.index)
+        skey, perm = torch.sort(key, stable=True)
+        del key
         ekey, e_sorted, counts = torch.unique_consecutive(skey, return_inverse=True, return_counts=True)
+        del skey
         self.e_pix, self.e_tex = ekey // T, ekey % T
         E = int(ekey.numel())
         self.E = E
+        del ekey
         # the entries by pixel (their own order) and by texel: row pointers, and the entries in texel order — the
         # patterns of the Jacobian's two matrices (no values: sums over them are index_adds, texel_sum)
         by_pix, by_tex = CsrPattern.of(self.e_pix, self.e_pix, (self.R, E)), CsrPattern.of(self.e_tex, self.e_tex,
@@ -244,19 +249,27 @@ class PixelOperator:
         self.tex_crow, self.tex_order = by_tex.crow, (by_tex.order if by_tex.order is not None
                                                       else torch.arange(E, device=dev))
         del by_pix, by_tex
-        # samples → entries: each sample's texels (its texture footprint) and weights, repeated pairs summed
+        # samples → entries: each sample's texels (its texture footprint) and weights (the tap's weight times its
+        # ray's share of the pixel), repeated pairs summed
         crow = torch.zeros(E + 1, dtype=torch.long, device=dev)
         crow[1:] = counts.cumsum(0)
+        del counts
+        t_s = so.taps.rows()[perm]                      # each sorted tap's sample
+        coef = so.taps.weight[perm].to(ACC)
+        del perm
+        coef.mul_(fp.share.to(ACC)[t_s])
         # the two sampling operators' values in the samples' precision (float32: 4 bytes per texture tap less
         # each; the model reads its parameters in that precision anyway)
         vdt = so.dtype if so.dtype.is_floating_point else ACC
-        self.corner_op = csr_matrix(crow, t_s[perm], coef[perm].to(vdt), (E, S))
-        # texels → samples: the taps are sample-major, so the matrix is the taps' own texel indices (int32) and
-        # weights, shared rather than copied where their types are the matrix's (0.25 GB on 32 × 512² photos)
-        self.gather_op = _csr(t_s, so.taps.index, so.taps.weight.to(vdt), (S, T))
-        self.group_op = _csr(fp.group, torch.arange(S, device=dev), fp.share.to(ACC), (self.R, S))
+        self.corner_op = csr_matrix(crow, t_s, coef.to(vdt), (E, S))
+        del t_s, crow
         # each entry's share of its pixel (Σ over a pixel's entries = 1): how much of the pixel the texel is
-        self.e_share = torch.zeros(E, dtype=ACC, device=dev).index_add_(0, e_sorted, coef[perm])
+        self.e_share = torch.zeros(E, dtype=ACC, device=dev).index_add_(0, e_sorted, coef)
+        del e_sorted, coef
+        # texels → samples: the taps are sample-major, so the matrix is the taps' own row pointers, texel indices
+        # (int32) and weights, shared rather than copied where their types are the matrix's (0.25 GB on 32 × 512²)
+        self.gather_op = csr_matrix(so.taps.start, so.taps.index, so.taps.weight.to(vdt), (S, T))
+        self.group_op = _csr(fp.group, torch.arange(S, device=dev), fp.share.to(ACC), (self.R, S))
         # the entries' pixels and texels in 32 bits (indices only, no arithmetic; index_add takes them as int64: its
         # 32-bit path is 2.4× slower on the CPU)
         if max(self.R, T) < 2 ** 31:
