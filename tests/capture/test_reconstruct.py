@@ -80,6 +80,25 @@ def test_a_memory_budget_keeps_the_footprint_jacobian_per_sample_and_warns_when_
     assert rep.fit["footprint_jacobian"] == "assembled" and not [w for w in rep.warnings if "budget" in w]
 
 
+def test_the_final_fit_runs_without_the_views_g_buffers(lambert_ds, tmp_path, monkeypatch):
+    # the observations are made before the final fit; the G-buffers they were made of are released before it runs
+    held = []
+    fit = R._Fitter.fit
+
+    def fit_and_look(self, mdl, obs, fp, **kw):
+        held.append(seen[0].views._preps is not None)
+        return fit(self, mdl, obs, fp, **kw)
+
+    final, seen = R._final_fit, []
+    monkeypatch.setattr(R, "_final_fit", lambda mdl, s, *a: seen.append(s) or final(mdl, s, *a))
+    monkeypatch.setattr(R._Fitter, "fit", fit_and_look)
+    R.reconstruct(lambert_ds, model="lambert", out_dir=tmp_path / "v", progress=False, iterations=3, grid=4,
+                  footprint_iterations=1)
+    assert held == [False]
+    with pytest.raises(R.ReconstructionError, match="released"):
+        seen[0].observe(8)
+
+
 def test_no_error_at_the_truths_determined_texels_when_another_model_rendered_the_photos(lambert_ds, tmp_path):
     # the true maps are Lambert's: a GGX + Lambert fit has no true f0 / roughness to judge what the photos determine
     rep = reconstruct(lambert_ds, model="ggx-lambert", out_dir=tmp_path / "o", progress=False, iterations=5, grid=4)
