@@ -428,9 +428,17 @@ class PixelOperator:
         """``[T, S]`` the transpose of ``gather_op`` (samples → texels), made once from its triplets."""
         if self._gather_t is None:
             G = self.gather_op
-            crow = G.crow_indices().long()
-            rows = torch.repeat_interleave(torch.arange(G.shape[0], device=crow.device), crow[1:] - crow[:-1])
-            self._gather_t = _csr(G.col_indices().long(), rows, G.values(), (self.T, G.shape[0]))
+            tex = G.col_indices()
+            # the taps by texel (a stable sort: by sample within a texel) with their samples in 32 bits, instead of
+            # every tap's sample and texel in 64 bits beside the sort's copies
+            order = torch.argsort(tex, stable=True)
+            crow = torch.zeros(self.T + 1, dtype=torch.long, device=tex.device)
+            crow[1:] = torch.bincount(tex, minlength=self.T).cumsum(0)
+            g_crow = G.crow_indices()
+            itype = torch.int32 if G.shape[0] < 2 ** 31 else torch.long
+            sample = torch.repeat_interleave(torch.arange(G.shape[0], dtype=itype, device=tex.device),
+                                             (g_crow[1:] - g_crow[:-1]).long())[order]
+            self._gather_t = csr_matrix(crow, sample, G.values()[order], (self.T, G.shape[0]))
         return self._gather_t
 
     def _jacobian(self, Jc: Tensor, mask: Tensor, P: int) -> PixelJacobian:
