@@ -174,14 +174,7 @@ def resident_memory(device: torch.device | str = "cpu") -> int | None:
     dev = torch.device(device)
     if dev.type == "cuda":
         return int(torch.cuda.memory_reserved(dev))
-    try:
-        with open("/proc/self/status", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024          # the file's unit is kiB
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
+    return _proc_kib("/proc/self/status", "VmRSS:")
 
 
 def memory_headroom(device: torch.device | str = "cpu", budget: int | None = None) -> int | None:
@@ -198,11 +191,17 @@ def memory_headroom(device: torch.device | str = "cpu", budget: int | None = Non
 
 def _meminfo_available() -> int | None:
     """``MemAvailable`` of ``/proc/meminfo`` in bytes; None without the file or the line."""
+    return _proc_kib("/proc/meminfo", "MemAvailable:")
+
+
+def _proc_kib(path: str, key: str) -> int | None:
+    """The line ``key`` of a ``/proc`` file whose values are in kiB (``/proc/meminfo``, ``/proc/self/status``), in
+    bytes; None without the file, the line or a number on it."""
     try:
-        with open("/proc/meminfo", encoding="ascii") as f:
+        with open(path, encoding="ascii") as f:
             for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024          # the file's unit is kiB
+                if line.startswith(key):
+                    return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         return None
     return None
