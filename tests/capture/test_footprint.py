@@ -160,6 +160,31 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-15 * float(a.abs().max()))
 
 
+def test_assembled_values_are_summed_in_float64_from_the_float32_samples(ggx, monkeypatch):
+    """The samples' Jacobian is held in float32 (the model's precision), and the assembled form sums the entries'
+    values from it in float64 over the run of samples each block of entries reads: exactly ``corner_op · Jc`` in
+    float64, whatever the block size (the float32 sum differs)."""
+    import capture.fit.operators as ops
+
+    sc, fp, _, T = ggx
+    model, layout = sc.model, Layout.of(sc.model)
+    op = PixelOperator(fp, T * T, jacobian="assembled")
+    canon = torch.rand(T * T, layout.P, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 0.8 + 0.1
+    _, Jc, _ = op._sample_jacobian(model, layout, canon, param_groups(layout))
+    assert Jc.dtype == torch.float32
+    exact = op.corner_op.to(torch.float64) @ Jc.double()
+    for block in (op.E, 61):
+        got = torch.cat([op._entry_values(Jc, a, min(a + block, op.E), torch.float64)
+                         for a in range(0, op.E, block)])
+        assert torch.equal(got, exact), block
+    assert not torch.equal(op._entry_values(Jc, 0, op.E).double(), exact)
+    # and these, rounded once to float32, are the values both matrices hold (placed in their own orders)
+    monkeypatch.setattr(ops, "PLACE_BLOCK", 61)
+    _, C = op.linearise(model, layout, canon, param_groups(layout))
+    held = torch.sort(exact.float().reshape(-1)).values
+    assert torch.equal(torch.sort(C.A.values()).values, held) and torch.equal(torch.sort(C.At.values()).values, held)
+
+
 @pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert"])
 def test_the_two_jacobian_forms_give_the_same_solver_quantities(ggx, model_name):
     """Kept per sample or assembled, the Jacobian gives the same predictions, products, gradient and per-texel
