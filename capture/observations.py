@@ -550,6 +550,10 @@ class ViewExtractor:
             raise ObservationError(f"need the {self.n_views} views' samples (ViewExtractor.view), got {len(parts)}")
         if any(not p.columns for p in parts):
             raise ObservationError("these views' samples were already joined: extract the views again")
+        with_tex = [p.columns["tex"] is not None for p in parts]
+        if any(with_tex) and not all(with_tex):
+            raise ObservationError("some views have texture footprints (texels) and some not: give every view's or "
+                                   "none")
         if lights is None:
             lights = []
             for x in parts[0].term_lights:
@@ -587,10 +591,7 @@ class ViewExtractor:
         view = torch.cat([torch.full((p.n_samples,), p.view, dtype=torch.long) for p in parts])
         bi = bw = taps = None
         tex = [p.columns.pop("tex") for p in parts]
-        if any(t is None for t in tex) and any(t is not None for t in tex):
-            raise ObservationError("some views have texture footprints (texels) and some not: give every view's or "
-                                   "none")
-        if bilinear and tex[0] is not None:
+        if bilinear and with_tex[0]:
             # TexelTaps.cat's rows, each view's arrays released once copied (the taps are the samples' largest part)
             start = TexelTaps.cat([TexelTaps(t.start, t.index[:0], t.weight[:0]) for t in tex]).start
             taps = TexelTaps(start, _cat_field(tex, "index"), _cat_field(tex, "weight"))

@@ -244,5 +244,7 @@ def test_view_extractor_refuses_what_it_cannot_join():
     mixed = [fx.view(0, preps[0], photos[0], taps), fx.view(1, preps[1], photos[1])]
     with pytest.raises(ObservationError, match="some views have texture footprints"):
         fx.observations(mixed, bilinear=True)
+    with pytest.raises(ObservationError, match="some views have texture footprints"):   # refused before any change
+        fx.observations(mixed, bilinear=True)
     with pytest.raises(ObservationError, match="one mask per view"):
         ViewExtractor(2, (16, 16), clipped=[torch.zeros(32, 32, dtype=torch.bool)])
