@@ -1430,7 +1430,7 @@ def _report_budget(report: Report, budget: float | None) -> None:
     when the peak went above it, saying what the budget sized and what it did not."""
     if budget is None:
         return
-    limit = int(budget * 2 ** 30)
+    limit = FitOptions(memory_budget=budget).memory_budget_bytes
     report.memory["budget_bytes"] = limit
     peak = report.memory.get("cuda_peak_bytes" if report.device.startswith("cuda") else "peak_rss_bytes")
     if peak is not None and peak > limit:
@@ -1439,8 +1439,8 @@ def _report_budget(report: Report, budget: float | None) -> None:
         report.warnings.append(
             f"peak memory {peak / 2 ** 30:.2f} GiB went above the memory budget of {budget:g} GiB: the budget sizes "
             f"only the footprint solve's Jacobian (kept {form or 'as asked'}); the observations of the {pixels} "
-            f"observed pixels and their pixel operator are held whole. Fit fewer views (--holdout) or smaller maps "
-            f"(--texture-size), or raise the budget")
+            f"observed pixels and their pixel operator are held whole. Fit smaller maps (--texture-size) or a "
+            f"dataset of fewer views, or raise the budget")
 
 
 def _memory_text(memory: Mapping[str, int]) -> str:
