@@ -163,21 +163,30 @@ def scale_figure(rows: list[dict], path) -> None:
 
     from ..plots import save_figure
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for machine, dev in dict.fromkeys((r["machine"], r["device"]) for r in rows):
+    series = list(dict.fromkeys((r["machine"], r["device"]) for r in rows))
+    legend_h = 0.2 * (len(series) + 1)                  # inches below the plots for one legend line per series
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.0 + legend_h))
+    colours = plt.get_cmap("tab10").colors
+    for i, (machine, dev) in enumerate(series):
         rs = sorted((r for r in rows if r["device"] == dev and r["machine"] == machine), key=lambda r: r["pixels"])
         px = [r["pixels"] for r in rs]
         cores = next((p.strip() for p in machine.split(",") if "cores" in p), machine)
-        name = f"{dev}, {cores}"
-        axes[0].plot(px, [r["times"]["total"] for r in rs], "o-", label=f"{name}: total")
-        axes[0].plot(px, [r["times"].get("solve", 0.0) for r in rs], "s--", label=f"{name}: solve")
-        axes[1].plot(px, [r["peak_rss_bytes"] / 2 ** 30 for r in rs], "o-", label=f"{name}: peak RSS")
-    axes[0].set(xscale="log", yscale="log", xlabel="observed pixels", ylabel="seconds", title="time")
-    axes[1].set(xscale="log", yscale="log", xlabel="observed pixels", ylabel="GiB", title="peak memory")
+        # the code the rows ran, as the table's caption names it (up to a colon, at most ~60 characters)
+        code = machine.split(" — ", 1)[1].split(":")[0].strip() if " — " in machine else ""
+        if len(code) > 60:
+            code = code[:60].rsplit(" ", 1)[0] + " …"
+        name = f"{dev}, {cores}" + (f" — {code}" if code else "")
+        c = colours[i % len(colours)]
+        axes[0].plot(px, [r["times"]["total"] for r in rs], "o-", color=c, label=name)
+        axes[0].plot(px, [r["times"].get("solve", 0.0) for r in rs], "s--", color=c)
+        axes[1].plot(px, [r["peak_rss_bytes"] / 2 ** 30 for r in rs], "o-", color=c)
+    axes[0].set(xscale="log", yscale="log", xlabel="observed pixels", ylabel="seconds",
+                title="time (solid: total, dashed: the solve)")
+    axes[1].set(xscale="log", yscale="log", xlabel="observed pixels", ylabel="GiB", title="peak resident memory")
     for ax in axes:
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.tight_layout()
+    fig.legend(loc="lower center", ncol=1, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, legend_h / (4.0 + legend_h), 1, 1))
     save_figure(fig, path)
     plt.close(fig)
 
