@@ -43,7 +43,7 @@ import shutil
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -553,6 +553,9 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     del views
     report = Report(model="", solver=solver, out_dir=str(inputs.out_dir), device=str(inputs.device))
     _report_samples(report, data, seen, footprint, solver)
+    if seen.fp_all is not None and seen.fp_all is not seen.fp:
+        # with held-out views the fitted and held-out footprints are copies: the whole set was only counted
+        seen = replace(seen, fp_all=None)
     fitter = _Fitter(solver, loss, seen.options, inputs.scalars, _solver_progress(prog), inputs.device)
 
     with _timed(times, "select"):
@@ -735,9 +738,9 @@ class _Observed:
     all_obs: Observations           #: samples of all views
     obs: Observations               #: samples of the fitted views
     held_obs: Observations | None   #: samples of the held-out views
-    fp_all: PixelFootprints | None  #: footprints of all views, the fitted ones, the held-out ones
-    fp: PixelFootprints | None
-    held_fp: PixelFootprints | None
+    fp_all: PixelFootprints | None  #: footprints of all views (None once counted, when views are held out)
+    fp: PixelFootprints | None      #: the fitted views' footprints
+    held_fp: PixelFootprints | None  #: the held-out views' footprints
 
 
 def _distinct_lights(views) -> list:

@@ -99,6 +99,19 @@ def test_the_final_fit_runs_without_the_views_g_buffers(lambert_ds, tmp_path, mo
         seen[0].observe(8)
 
 
+def test_held_out_views_do_not_keep_a_third_copy_of_the_footprints(lambert_ds, tmp_path, monkeypatch):
+    # the fitted and held-out footprints are copies of the whole set's, which the fit no longer holds once counted
+    final, seen = R._final_fit, []
+    monkeypatch.setattr(R, "_final_fit", lambda mdl, s, *a: seen.append(s) or final(mdl, s, *a))
+    rep = R.reconstruct(lambert_ds, model="lambert", out_dir=tmp_path / "h", progress=False, holdout=[1],
+                        footprint_iterations=1)
+    assert seen[0].fp_all is None and seen[0].fp is not None and seen[0].held_fp is not None
+    counted = rep.samples["footprints"]["pixels"]
+    assert counted == seen[0].fp.n_pixels + seen[0].held_fp.n_pixels
+    R.reconstruct(lambert_ds, model="lambert", out_dir=tmp_path / "a", progress=False, footprint_iterations=1)
+    assert seen[1].fp_all is seen[1].fp
+
+
 def test_no_error_at_the_truths_determined_texels_when_another_model_rendered_the_photos(lambert_ds, tmp_path):
     # the true maps are Lambert's: a GGX + Lambert fit has no true f0 / roughness to judge what the photos determine
     rep = reconstruct(lambert_ds, model="ggx-lambert", out_dir=tmp_path / "o", progress=False, iterations=5, grid=4)
