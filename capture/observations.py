@@ -426,8 +426,8 @@ class ViewSamples:
         view: the view's index; size: its ``(height, width)``.
         columns: the per-sample tensors (``uv``, ``n``, ``v``, ``radiance``, ``noise``, ``pixel``, ``weight``) and
             ``tex`` (:class:`TexelTaps` or None), consumed by :meth:`ViewExtractor.observations`.
-        pair_sample, pair_term, angles, irradiance: the kept (sample, light) pairs in sample order; ``pair_term`` is
-            the pair's light as its index among ``term_lights``, ``angles`` their cosines by :class:`Angles` field.
+        pairs: the kept (sample, light) pairs in sample order, consumed like ``columns``: ``sample``, ``term`` (the
+            pair's light as its index among ``term_lights``), ``irradiance`` and the cosines by :class:`Angles` field.
         term_lights: the lights of the prepared G-buffer's terms, in order (which also decide the scene's lights
             when none are given: the first view's).
         envs: environment terms ``(light, sample index)``; drops: this view's drop counts (:data:`DROP_REASONS`).
@@ -437,10 +437,7 @@ class ViewSamples:
     view: int
     size: tuple[int, int]
     columns: dict
-    pair_sample: Tensor
-    pair_term: Tensor
-    angles: dict
-    irradiance: Tensor
+    pairs: dict
     term_lights: list
     envs: list
     drops: dict
@@ -518,7 +515,7 @@ class ViewExtractor:
         keep_g = torch.nonzero(ok).squeeze(-1)                 # G-buffer indices kept
         local = torch.full((len(g),), -1, dtype=torch.long, device=finite.device)
         local[keep_g] = torch.arange(len(keep_g), device=finite.device)
-        pair_sample, pair_term, angles, irradiance = _view_pairs(prep, ok, local, dt)
+        pairs = _view_pairs(prep, ok, local, dt)
         envs = [(e.light, local[e.index[ok[e.index]]]) for e in prep.envs]
         valid = torch.zeros(n_pix, dtype=torch.bool, device=finite.device)
         valid[g.pixel] = finite & ~clipped_s
@@ -535,8 +532,8 @@ class ViewExtractor:
                        radiance=pix[keep_g] / exposure, noise=resid.reshape(-1, 3)[g.pixel[keep_g]],
                        pixel=g.pixel[keep_g],
                        weight=g.weight[keep_g].to(dt) if self.footprints else torch.ones(len(keep_g), dtype=dt))
-        return ViewSamples(vi, (g.height, g.width), columns, pair_sample, pair_term, angles, irradiance,
-                           [t.light for t in prep.lights], envs, drops, len(keep_g))
+        return ViewSamples(vi, (g.height, g.width), columns, pairs, [t.light for t in prep.lights], envs, drops,
+                           len(keep_g))
 
     def observations(self, parts: list[ViewSamples], *, lights: Sequence | None = None,
                      bilinear: bool = False) -> Observations:
@@ -570,18 +567,18 @@ class ViewExtractor:
             raise ObservationError(f"no valid sample in any view (dropped: {drops}); check that the cameras see the "
                                    f"mesh, the lights face it, and the photos are not saturated or NaN")
 
-        def cat(key):           # one column of every view, each view's tensor released once copied
-            out = torch.cat([p.columns.pop(key) for p in parts])
-            release_memory()
-            return out
+        columns, pairs = [p.columns for p in parts], [p.pairs for p in parts]
 
-        for o, p in zip(offs, parts, strict=True):     # the pairs' samples and lights in the joined numbering
-            p.pair_sample = p.pair_sample + o
-            table = [light_id.get(id(x), -1) for x in p.term_lights] or [-1]
-            p.pair_term = torch.tensor(table, dtype=torch.long, device=p.pair_term.device)[p.pair_term]
-        pair_sample, pair_light, irradiance = (_cat_field(parts, f) for f in ("pair_sample", "pair_term", "irradiance"))
-        angles = Angles(*(torch.cat([p.angles.pop(f) for p in parts]) for f in _ANGLE_FIELDS))
-        release_memory()
+        def cat(key):           # one column of every view, each view's tensor released once copied
+            return _take(columns, key)
+
+        for o, p in zip(offs, pairs, strict=True):      # the pairs' samples and lights in the joined numbering
+            p["sample"] = p["sample"] + o
+        for lts, p in zip((q.term_lights for q in parts), pairs, strict=True):
+            table = [light_id.get(id(x), -1) for x in lts] or [-1]
+            p["term"] = torch.tensor(table, dtype=torch.long, device=p["term"].device)[p["term"]]
+        pair_sample, pair_light, irradiance = (_take(pairs, f) for f in ("sample", "term", "irradiance"))
+        angles = Angles(*(_take(pairs, f) for f in _ANGLE_FIELDS))
         envs_all: dict[int, tuple] = {}
         for o, p in zip(offs, parts, strict=True):
             for light, idx in p.envs:
@@ -590,11 +587,12 @@ class ViewExtractor:
         uv = cat("uv")
         view = torch.cat([torch.full((p.n_samples,), p.view, dtype=torch.long) for p in parts])
         bi = bw = taps = None
-        tex = [p.columns.pop("tex") for p in parts]
+        tex = [c.pop("tex") for c in columns]
         if bilinear and with_tex[0]:
             # TexelTaps.cat's rows, each view's arrays released once copied (the taps are the samples' largest part)
             start = TexelTaps.cat([TexelTaps(t.start, t.index[:0], t.weight[:0]) for t in tex]).start
-            taps = TexelTaps(start, _cat_field(tex, "index"), _cat_field(tex, "weight"))
+            tex = [{"index": t.index, "weight": t.weight} for t in tex]
+            taps = TexelTaps(start, _take(tex, "index"), _take(tex, "weight"))
         elif bilinear:
             bi, bw = bilinear_weights(uv, H, W)
         del tex
@@ -608,21 +606,18 @@ class ViewExtractor:
             noise_residual=cat("noise"))
 
 
-def _cat_field(items: list, name: str) -> Tensor:
-    """``torch.cat`` of the attribute ``name`` of ``items``, each item's released (set to None) once copied."""
-    out = []
-    for x in items:
-        out.append(getattr(x, name))
-        setattr(x, name, None)
-    out = torch.cat(out)
+def _take(parts: list[dict], key: str) -> Tensor:
+    """``torch.cat`` of the entry ``key`` of every dict in ``parts``, each removed from its dict, and the heap memory
+    they leave freed returned (:func:`renderer.device.release_memory`)."""
+    out = torch.cat([p.pop(key) for p in parts])
     release_memory()
     return out
 
 
-def _view_pairs(prep, ok: Tensor, local: Tensor, dt) -> tuple[Tensor, Tensor, dict, Tensor]:
-    """The kept (sample, light) pairs of a view, sorted by sample: ``(sample, term, angles, E·V)``, samples by their
-    index ``local`` among the view's kept ones, lights by their term's index in ``prep.lights``, the angles' cosines
-    by field."""
+def _view_pairs(prep, ok: Tensor, local: Tensor, dt) -> dict:
+    """The kept (sample, light) pairs of a view, sorted by sample (:attr:`ViewSamples.pairs`): ``sample`` by its index
+    ``local`` among the view's kept ones, ``term`` the light's index in ``prep.lights``, ``irradiance`` E·V and the
+    cosines by :class:`Angles` field."""
     pairs = []
     for ti, t in enumerate(prep.lights):
         sel = ok[t.index]
@@ -632,17 +627,23 @@ def _view_pairs(prep, ok: Tensor, local: Tensor, dt) -> tuple[Tensor, Tensor, di
                       t.angles[sel].to(dtype=dt), t.irradiance[sel].to(dt)))
     if not pairs:
         empty = torch.zeros(0, 1, dtype=dt, device=ok.device)
-        return (torch.zeros(0, dtype=torch.long, device=ok.device), torch.zeros(0, dtype=torch.long, device=ok.device),
-                dict.fromkeys(_ANGLE_FIELDS, empty), torch.zeros(0, 3, dtype=dt, device=ok.device))
+        no = torch.zeros(0, dtype=torch.long, device=ok.device)
+        return {"sample": no, "term": no, "irradiance": torch.zeros(0, 3, dtype=dt, device=ok.device),
+                **dict.fromkeys(_ANGLE_FIELDS, empty)}
     s = torch.cat([p[0] for p in pairs])
-    if len(pairs) == 1 and bool((s[1:] >= s[:-1]).all()):
-        return pairs[0][0], pairs[0][1], {f: getattr(pairs[0][2], f) for f in _ANGLE_FIELDS}, pairs[0][3]
     # the lights' pairs merged in sample order here, a view at a time, so that the views' pairs concatenated
     # (offset by view) are sorted by sample with no permutation of all of them: Observations.predict_rows then
     # reads a block's pairs as one slice
-    order = torch.argsort(s, stable=True)
-    angles = {f: torch.cat([getattr(p[2], f) for p in pairs])[order] for f in _ANGLE_FIELDS}
-    return s[order], torch.cat([p[1] for p in pairs])[order], angles, torch.cat([p[3] for p in pairs])[order]
+    one = len(pairs) == 1 and bool((s[1:] >= s[:-1]).all())
+    order = None if one else torch.argsort(s, stable=True)
+
+    def merged(values):
+        return values[0] if one else torch.cat(values)[order]
+
+    return {"sample": merged([p[0] for p in pairs]), "term": merged([p[1] for p in pairs]),
+            "irradiance": merged([p[3] for p in pairs]),
+            **{f: merged([getattr(p[2], f) for p in pairs]) for f in _ANGLE_FIELDS}}
+
 
 def _random_unit(n: int, gen: torch.Generator, dtype) -> Tensor:
     x = torch.randn(n, 3, generator=gen, dtype=dtype)

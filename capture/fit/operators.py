@@ -412,7 +412,7 @@ class PixelOperator:
     def _sample_form(self, Jc: Tensor, mask: Tensor, P: int) -> SampleJacobian:
         """The :class:`SampleJacobian` of the samples' Jacobian ``Jc [S, k]`` at the pairs of ``mask [3, P]``."""
         cs, ps = torch.nonzero(mask, as_tuple=True)
-        return SampleJacobian(cs, ps, Jc.t().to(self.gather_op.dtype).contiguous(), P)
+        return SampleJacobian(cs, ps, Jc.t().contiguous(), P)
 
     def _n_params(self, J: PixelJacobian | SampleJacobian) -> int:
         """The parameters per texel, P, of a linearisation."""
@@ -472,9 +472,9 @@ class PixelOperator:
             self._pattern = (key, cs, ps, by_pix, by_tex, (by_pix.row_pointers().to(itype), col_a),
                              (by_tex.row_pointers().to(itype), col_t))
         _, cs, ps, by_pix, by_tex, a_idx, t_idx = self._pattern
-        # the values in the precision the model was evaluated in: float32 evaluations make float32 values, whose
+        # the values in the precision the model was evaluated in (Jc's): float32 evaluations make float32 values, whose
         # products read half the bytes (with 32-bit indices 5.2 against 7.7 ms per product of 4.4 M non-zeros)
-        vdt = self.fp.samples.dtype if self.fp.samples.dtype == torch.float32 else Jc.dtype
+        vdt = Jc.dtype
         # (summed in float64 from the float32 samples: the sums' rounding moved the ill-conditioned fits — one view
         # of the stress scene, roughness on observable texels 0.0020 → 0.0041)
         a_vals = by_pix.scatter(lambda a, b: self._entry_values(Jc, a, b, ACC),
