@@ -458,7 +458,6 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
     drops = {f"samples_{k}": v for k, v in samples.drops.items() if k != "background"}
     drops["partial_pixels"] = max(partial, 0)
     samples.weight = torch.ones_like(share)
-    samples.noise_residual = None
     return PixelFootprints(samples=samples, group=group, share=share, radiance=samples.radiance[first].clone(),
                            view=view, pixel=pixel, counts=counts_r, noise_residual=noise, footprint_texels=foot_r,
                            drops=drops, cast_rays=cast, uniform_rays=uniform, psf_sigma=float(psf_sigma),

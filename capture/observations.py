@@ -36,6 +36,7 @@ from materials.geometry import Angles
 from materials.model import Model
 from renderer.device import per_view, release_memory
 from renderer.shading import radiance_sum
+from renderer.texture import bilinear_weights, texel_of
 
 __all__ = ["Observations", "ObservationError", "DROP_REASONS", "TexelTaps", "ViewExtractor", "ViewSamples",
            "observe_views", "synthetic_observations"]
@@ -392,10 +393,14 @@ def observe_views(prepared: Sequence, photos: Sequence[Tensor], map_size: tuple[
         footprints: the G-buffers hold sub-pixel samples (:func:`renderer.gbuffer.render_footprint`, any number
             per pixel): each sample's ``weight`` is its G-buffer weight (its share of its pixel) and its
             ``radiance`` its pixel's value; :func:`capture.footprint.observe_footprints` groups them into pixels.
-            The drop counts then count samples, and ``background`` is not counted.
+            The drop counts then count samples, and ``background`` is not counted. The samples then carry no
+            ``noise_residual`` (the noise is measured per pixel, :class:`capture.footprint.PixelFootprints`), and
+            no normals and view directions (``n``, ``v``: None; zeros in a view without environment lights when
+            another has them) unless an environment light reads them: the fit reads the pairs' angles.
         texels: per view a :class:`TexelTaps` of one row per G-buffer sample: the texels each sample reads (its
             texture footprint, :func:`capture.footprint.texture_footprints`) instead of the bilinear read at its uv;
-            with ``bilinear`` the kept samples' rows become ``taps``.
+            with ``bilinear`` the kept samples' rows become ``taps``. The samples then carry no ``uv`` (None; their
+            ``texel`` is still the one their uv falls in).
 
     Returns:
         :class:`Observations` with the drop counts filled in.
@@ -520,7 +525,6 @@ class ViewExtractor:
         valid = torch.zeros(n_pix, dtype=torch.bool, device=finite.device)
         valid[g.pixel] = finite & ~clipped_s
         exposure = self.exposures[vi]
-        resid = noise_residual(torch.nan_to_num(photo / exposure), valid.reshape(g.height, g.width))
         tex = None
         if texels is not None:
             if not isinstance(texels, TexelTaps) or texels.n_rows != len(g):
@@ -528,10 +532,25 @@ class ViewExtractor:
                                        f"({len(g)}), got {type(texels).__name__}"
                                        + (f" of {texels.n_rows} rows" if isinstance(texels, TexelTaps) else ""))
             tex = texels.select(ok).to(dtype=dt)
-        columns = dict(tex=tex, uv=g.uv[keep_g].to(dt), n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
-                       radiance=pix[keep_g] / exposure, noise=resid.reshape(-1, 3)[g.pixel[keep_g]],
-                       pixel=g.pixel[keep_g],
+        columns = dict(tex=tex, radiance=pix[keep_g] / exposure, pixel=g.pixel[keep_g],
                        weight=g.weight[keep_g].to(dt) if self.footprints else torch.ones(len(keep_g), dtype=dt))
+        # sub-pixel samples keep only what the fit and the metrics read of them (the normals, view directions and
+        # a noise per sample are 32 bytes per sample, 0.17 GB on the 5.3 M rays of 32 × 512² photos), and with
+        # texture footprints their texel instead of their uv
+        uv = g.uv[keep_g].to(dt)
+        if tex is not None:
+            columns.update(texel=texel_of(uv, *self.map_size), uv=None)
+        else:
+            columns.update(uv=uv)
+        del uv
+        if self.footprints:
+            # (environment lights read each sample's normal and view direction: kept in a view that has them)
+            vec = (lambda x: x[keep_g].to(dt)) if envs else (lambda x: None)  # noqa: E731
+            columns.update(n=vec(g.normal), v=vec(g.view), noise=None)
+        else:
+            resid = noise_residual(torch.nan_to_num(photo / exposure), valid.reshape(g.height, g.width))
+            columns.update(n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
+                           noise=resid.reshape(-1, 3)[g.pixel[keep_g]])
         return ViewSamples(vi, (g.height, g.width), columns, pairs, [t.light for t in prep.lights], envs, drops,
                            len(keep_g))
 
@@ -541,8 +560,6 @@ class ViewExtractor:
         indices offset per view. ``lights``: the scene's point/directional lights in order (None: the first view's
         terms'). Each view's tensors are released from ``parts`` as they are copied, so the parts cannot be joined
         twice."""
-        from renderer.texture import bilinear_weights, texel_of
-
         if len(parts) != self.n_views or any(not isinstance(p, ViewSamples) for p in parts):
             raise ObservationError(f"need the {self.n_views} views' samples (ViewExtractor.view), got {len(parts)}")
         if any(not p.columns for p in parts):
@@ -570,6 +587,14 @@ class ViewExtractor:
         columns, pairs = [p.columns for p in parts], [p.pairs for p in parts]
 
         def cat(key):           # one column of every view, each view's tensor released once copied
+            have = [c[key] for c in columns if c[key] is not None]
+            if not have:        # a column no view keeps (the sub-pixel samples' vectors and noise)
+                for c in columns:
+                    c.pop(key)
+                return None
+            for c, p in zip(columns, parts, strict=True):      # zeros in the views that do not keep it (read by
+                if c[key] is None:                              # nothing: their samples have no term that reads it)
+                    c[key] = have[0].new_zeros(p.n_samples, *have[0].shape[1:])
             return _take(columns, key)
 
         for o, p in zip(offs, pairs, strict=True):      # the pairs' samples and lights in the joined numbering
@@ -585,6 +610,7 @@ class ViewExtractor:
                 envs_all.setdefault(id(light), (light, []))[1].append(idx + o)
             p.envs = []
         uv = cat("uv")
+        texel = cat("texel") if "texel" in columns[0] else texel_of(uv, H, W)
         view = torch.cat([torch.full((p.n_samples,), p.view, dtype=torch.long) for p in parts])
         bi = bw = taps = None
         tex = [c.pop("tex") for c in columns]
@@ -597,9 +623,9 @@ class ViewExtractor:
             bi, bw = bilinear_weights(uv, H, W)
         del tex
         return Observations(
-            texel=texel_of(uv, H, W), map_size=(H, W), radiance=cat("radiance"),
-            weight=cat("weight").to(uv.device), pair_sample=pair_sample, pair_light=pair_light, angles=angles,
-            irradiance=irradiance, view=view.to(uv.device), pixel=cat("pixel"), uv=uv, n=cat("n"), v=cat("v"),
+            texel=texel, map_size=(H, W), radiance=cat("radiance"),
+            weight=cat("weight").to(texel.device), pair_sample=pair_sample, pair_light=pair_light, angles=angles,
+            irradiance=irradiance, view=view.to(texel.device), pixel=cat("pixel"), uv=uv, n=cat("n"), v=cat("v"),
             bilinear_index=bi, bilinear_weight=bw, taps=taps,
             env_terms=[(light, torch.cat(idx)) for light, idx in envs_all.values()], drops=drops,
             n_views=len(parts), image_size=[p.size for p in parts], n_lights=max(len(lights), 1),

@@ -248,3 +248,40 @@ def test_view_extractor_refuses_what_it_cannot_join():
         fx.observations(mixed, bilinear=True)
     with pytest.raises(ObservationError, match="one mask per view"):
         ViewExtractor(2, (16, 16), clipped=[torch.zeros(32, 32, dtype=torch.bool)])
+
+
+def test_sub_pixel_samples_keep_only_what_is_read():
+    """With texture footprints, the sub-pixel samples keep their texel (the one their uv falls in) but no uv, and no
+    normals, view directions or noise per sample — unless an environment light reads the normals and view
+    directions: then they are kept, and a view without one has zeros there. What they keep equals the full
+    extraction's."""
+    from capture.observations import TexelTaps, ViewExtractor
+    from renderer.lights import HemisphereLight
+    from renderer.shading import prepare
+
+    preps, photos, lights = _two_view_sphere()
+    full = observe_views(preps, photos, (16, 16), lights=lights)
+
+    def footprints(ps):
+        fx = ViewExtractor(2, (16, 16), footprints=True)
+        taps = [TexelTaps(torch.arange(len(p.gbuffer) + 1), torch.zeros(len(p.gbuffer), dtype=torch.int32),
+                          torch.ones(len(p.gbuffer))) for p in ps]
+        return fx.observations([fx.view(i, ps[i], photos[i], taps[i]) for i in range(2)], lights=lights,
+                               bilinear=True)
+
+    sub = footprints(preps)
+    assert sub.uv is None and sub.n is None and sub.v is None and sub.noise_residual is None
+    for f in ("texel", "radiance", "pair_sample", "pair_light", "irradiance", "view", "pixel"):
+        assert torch.equal(getattr(sub, f), getattr(full, f)), f
+    # an environment light in the second view only: its samples' vectors are kept, the first view's are zeros
+    from renderer.mesh import uv_sphere
+
+    sky = HemisphereLight(torch.tensor([0.2, 0.3, 0.4]), torch.tensor([0.05, 0.05, 0.05]), torch.tensor([0.0, 0.0, 1.]))
+    env = [preps[0], prepare(preps[1].gbuffer, uv_sphere(segments=24, rings=12), [lights[1], lights[0], sky])]
+    full = observe_views(env, photos, (16, 16), lights=lights)
+    sub = footprints(env)
+    first = sub.view == 0
+    assert sub.n is not None and sub.v is not None and len(sub.env_terms) == 1
+    assert not bool(sub.n[first].any()) and not bool(sub.v[first].any())
+    assert torch.equal(sub.n[~first], full.n[~first]) and torch.equal(sub.v[~first], full.v[~first])
+    assert torch.equal(sub.texel, full.texel) and torch.equal(sub.env_terms[0][1], full.env_terms[0][1])
