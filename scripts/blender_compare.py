@@ -146,9 +146,22 @@ def render(glb, views: list[dict], out, *, spp: int = 64, threads: int = 1, blen
     log = proc.stdout + proc.stderr
     missing = [v["name"] for v in views if not (out / f"{v['name']}.exr").exists()]
     if "SHADECAP_BLENDER_DONE" not in proc.stdout or missing:
-        raise BlenderError(f"Blender failed (status {proc.returncode}, missing {missing}):\n{log[-3000:]}")
+        raise BlenderError(f"Blender failed (status {proc.returncode}, missing {missing}){_known_cause(log)}:\n"
+                           f"{log[-3000:]}")
     return next(line.split(None, 1)[1] for line in proc.stdout.splitlines()
                 if line.startswith("SHADECAP_BLENDER_VERSION"))
+
+
+def _known_cause(log: str) -> str:
+    """A hint naming the cause and the fix of a Blender failure this project has met, from Blender's output."""
+    if "has no attribute 'bool'" in log:
+        return (" — this Blender's glTF importer uses numpy's `np.bool`, which numpy 1.24 removed (Blender ≤ 3.4 "
+                "beside a newer numpy, e.g. Debian 12's blender 3.4 and python3-numpy 1.24): use Blender ≥ 3.5, by "
+                "SHADECAP_BLENDER=/path/to/blender or --blender, or a Python with the `bpy` wheel")
+    if "No module named 'numpy'" in log:
+        return (" — Blender's Python has no numpy, which its glTF importer needs: install numpy for that Python "
+                "(Debian: python3-numpy) or use a Blender that bundles it")
+    return ""
 
 
 def light_json(light) -> dict:
