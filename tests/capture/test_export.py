@@ -686,6 +686,24 @@ def _blender_compare():
     return bc, blender
 
 
+def test_blender_failures_name_their_cause_and_fix(tmp_path):
+    """A Blender whose glTF importer breaks on the numpy beside it (np.bool, removed in numpy 1.24; or no numpy at
+    all) fails with a message naming the cause and the fix, not only its traceback (a stand-in prints the error)."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("blender_compare", ROOT / "scripts" / "blender_compare.py")
+    bc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bc)
+    for said, hint in (("AttributeError: module 'numpy' has no attribute 'bool'", "use Blender ≥ 3.5"),
+                       ("ModuleNotFoundError: No module named 'numpy'", "install numpy for that Python"),
+                       ("Segmentation fault", r"missing \['view0'\]\):\n")):
+        with pytest.raises(bc.BlenderError, match=hint) as err:
+            bc.render(tmp_path / "x.glb", [{"name": "view0"}], tmp_path / "out",
+                      blender=[sys.executable, "-c", f"print({said!r})"])
+        assert said in str(err.value)
+
+
 def _blender_psnr(tmp_path, maps, exports, spp=64):
     """Render GLBs of ``maps`` on a sphere in Blender (glTF importer with its defaults, Cycles, direct light, box
     filter) from two dataset cameras and compare with the photos our renderer makes from the maps: Blender's
