@@ -429,7 +429,8 @@ class ViewSamples:
 
     Attributes:
         view: the view's index; size: its ``(height, width)``.
-        columns: the per-sample tensors (``uv``, ``n``, ``v``, ``radiance``, ``noise``, ``pixel``, ``weight``) and
+        columns: the per-sample tensors (``radiance``, ``pixel``, ``weight``; ``uv``, ``n``, ``v``, ``noise``, each
+            None where the samples do not keep it, and ``texel`` in place of ``uv`` with texture footprints) and
             ``tex`` (:class:`TexelTaps` or None), consumed by :meth:`ViewExtractor.observations`.
         pairs: the kept (sample, light) pairs in sample order, consumed like ``columns``: ``sample``, ``term`` (the
             pair's light as its index among ``term_lights``), ``irradiance`` and the cosines by :class:`Angles` field.
@@ -522,8 +523,6 @@ class ViewExtractor:
         local[keep_g] = torch.arange(len(keep_g), device=finite.device)
         pairs = _view_pairs(prep, ok, local, dt)
         envs = [(e.light, local[e.index[ok[e.index]]]) for e in prep.envs]
-        valid = torch.zeros(n_pix, dtype=torch.bool, device=finite.device)
-        valid[g.pixel] = finite & ~clipped_s
         exposure = self.exposures[vi]
         tex = None
         if texels is not None:
@@ -548,6 +547,8 @@ class ViewExtractor:
             vec = (lambda x: x[keep_g].to(dt)) if envs else (lambda x: None)  # noqa: E731
             columns.update(n=vec(g.normal), v=vec(g.view), noise=None)
         else:
+            valid = torch.zeros(n_pix, dtype=torch.bool, device=finite.device)
+            valid[g.pixel] = finite & ~clipped_s
             resid = noise_residual(torch.nan_to_num(photo / exposure), valid.reshape(g.height, g.width))
             columns.update(n=g.normal[keep_g].to(dt), v=g.view[keep_g].to(dt),
                            noise=resid.reshape(-1, 3)[g.pixel[keep_g]])
