@@ -30,6 +30,12 @@ def _check_evaluations(evaluations: Sequence[dict], what: str) -> None:
             raise ValueError(f"{what} has a non-finite evaluation {e}: every entry needs finite seconds and error")
 
 
+def _check_curves(shadecap: Sequence[dict], runs: Sequence[dict]) -> None:
+    _check_evaluations(shadecap, "shadecap's curve")
+    for run in runs:
+        _check_evaluations(run.get("evaluations", ()), _run_name(run))
+
+
 def time_to_error(evaluations: Sequence[dict], error: float) -> float | None:
     """The first ``seconds`` of ``evaluations`` (in time order) whose ``albedo_rmse_well_lit`` is at most
     ``error``; None when none is."""
@@ -84,9 +90,7 @@ def race_table(shadecap: Sequence[dict], runs: Sequence[dict]) -> str:
     (``runs``: dicts with ``lr``, ``spp`` and ``evaluations``), the time it first had that error and its ratio to
     shadecap's time, or its best error and when, when it never had it; then, per run, its best error, when, and
     the time of shadecap's first fit (by time) with an error as low."""
-    _check_evaluations(shadecap, "shadecap's curve")
-    for run in runs:
-        _check_evaluations(run.get("evaluations", ()), _run_name(run))
+    _check_curves(shadecap, runs)
     head = "| footprint steps | shadecap: seconds to the maps | well-lit albedo RMSE |" + "".join(
         f" {_run_name(r)}: time to it |" for r in runs)
     lines = [head, "|" + "---|" * (3 + len(runs))]
@@ -118,9 +122,7 @@ def race_table(shadecap: Sequence[dict], runs: Sequence[dict]) -> str:
 def race_figure(shadecap: Sequence[dict], runs: Sequence[dict], path) -> None:
     """Well-lit albedo RMSE against seconds (log–log): shadecap's points by footprint-step budget, each run's
     evaluations as a line."""
-    _check_evaluations(shadecap, "shadecap's curve")
-    for run in runs:
-        _check_evaluations(run.get("evaluations", ()), _run_name(run))
+    _check_curves(shadecap, runs)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -143,5 +145,4 @@ def race_figure(shadecap: Sequence[dict], runs: Sequence[dict], path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    save_figure(fig, path)
-    plt.close(fig)
+    save_figure(fig, path)                      # (which closes the figure)
