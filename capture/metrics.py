@@ -25,7 +25,8 @@ from torch import Tensor
 
 __all__ = ["map_errors", "observability_errors", "determined_at_truth", "image_metrics", "MetricsError",
            "texel_normals", "coverage_advice", "HIGHLIGHT_DEG", "ADVICE_MIN_FRACTION", "well_lit_texels",
-           "pixel_sized_texels", "highlight_texels", "visible_lobe_texels", "VISIBLE_LOBE_RATIO"]
+           "pixel_sized_texels", "highlight_texels", "visible_lobe_texels", "VISIBLE_LOBE_RATIO",
+           "errors_by_texel_set"]
 
 
 class MetricsError(ValueError):
@@ -259,6 +260,34 @@ def highlight_texels(obs, roughness: Tensor, min_angle_deg: float = 1.0) -> Tens
     out = torch.zeros(H * W, dtype=torch.bool, device=obs.device)
     out[tex[ok]] = True
     return out.reshape(H, W)
+
+
+def errors_by_texel_set(raw: Mapping[str, Tensor], truth: Mapping[str, Tensor], obs, fp=None) -> dict:
+    """RMSE of the maps ``raw`` (canonical ``[H, W, C]``) against ``truth`` on the texel sets the image-formation
+    targets are stated on (docs/image-formation.md) — the report's ``errors.maps_by_texel_set``, and what the
+    Mitsuba baseline (``scripts/mitsuba_adam.py``) is measured on: ``{set: {"texels": n, map: rmse, …}}``, the sets
+    well lit (:func:`well_lit_texels` of the pixel-centre observations ``obs``), of those the ones that cover at
+    least a pixel in some view (with the pixel footprints ``fp``) and, for specular truths, seen inside a highlight
+    (:func:`highlight_texels`) and of those the ones whose lobe is visible (:func:`visible_lobe_texels`). Roughness
+    is also given as GGX/Beckmann α = r² (``roughness_alpha``)."""
+    from materials.roughness import roughness_to_alpha
+
+    lit = well_lit_texels(obs)
+    sets = {"well_lit": lit}
+    if fp is not None:
+        sets["well_lit_pixel_sized"] = lit & pixel_sized_texels(fp)
+    if "roughness" in truth and tuple(truth["roughness"].shape[:2]) == tuple(obs.map_size):
+        sets["well_lit_highlight"] = lit & highlight_texels(obs, truth["roughness"])
+        if "f0" in truth:
+            # of those, the texels whose lobe stands out of the diffuse term (a faint broad lobe barely shapes a
+            # pixel, and its roughness trades with the albedo inside the noise)
+            sets["well_lit_visible_highlight"] = sets["well_lit_highlight"] & visible_lobe_texels(truth)
+    # roughness also as GGX/Beckmann α = r², the unit most renderers take
+    with_alpha = (lambda d: {**d, "roughness_alpha": roughness_to_alpha(d["roughness"])}
+                  if "roughness" in d else d)
+    fitted_a, truth_a = with_alpha(dict(raw)), with_alpha(dict(truth))
+    return {k: {"texels": int(m.sum()), **{n: e["rmse"] for n, e in map_errors(fitted_a, truth_a, m).items()}}
+            for k, m in sets.items()}
 
 
 # ----------------------------------------------------------------------------------- coverage advice

@@ -53,7 +53,7 @@ from torch import Tensor
 
 from materials import KnownParams
 from materials.params import CANONICAL, preview_transfer
-from materials.roughness import half_max_angle, roughness_to_alpha
+from materials.roughness import half_max_angle
 from renderer.device import release_memory
 from renderer.gbuffer import check_psf_sigma
 
@@ -1138,36 +1138,11 @@ def _report_skipped(report: Report, mdl, ds: Dataset, seen: _Observed, solve_s: 
 # -- metrics vs ground truth ------------------------------------------------------------------------
 
 
-def _errors_by_texel_set(raw: Mapping[str, Tensor], truth: Mapping[str, Tensor], obs: Observations,
-                         fp: PixelFootprints | None) -> dict:
-    """The report's ``errors.maps_by_texel_set``: RMSE of the fitted (``raw``) maps on the texel sets the
-    image-formation targets are stated on (docs/image-formation.md): well lit, and of those the ones that cover at
-    least a pixel in some view and, for specular maps, seen inside a highlight."""
-    from .metrics import highlight_texels, map_errors, pixel_sized_texels, visible_lobe_texels, well_lit_texels
-
-    lit = well_lit_texels(obs)
-    sets = {"well_lit": lit}
-    if fp is not None:
-        sets["well_lit_pixel_sized"] = lit & pixel_sized_texels(fp)
-    if "roughness" in truth and tuple(truth["roughness"].shape[:2]) == tuple(obs.map_size):
-        sets["well_lit_highlight"] = lit & highlight_texels(obs, truth["roughness"])
-        if "f0" in truth:
-            # of those, the texels whose lobe stands out of the diffuse term (a faint broad lobe barely shapes a
-            # pixel, and its roughness trades with the albedo inside the noise)
-            sets["well_lit_visible_highlight"] = sets["well_lit_highlight"] & visible_lobe_texels(truth)
-    # roughness also as GGX/Beckmann α = r², the unit most renderers take
-    with_alpha = (lambda d: {**d, "roughness_alpha": roughness_to_alpha(d["roughness"])}
-                  if "roughness" in d else d)
-    fitted_a, truth_a = with_alpha(dict(raw)), with_alpha(dict(truth))
-    return {k: {"texels": int(m.sum()), **{n: e["rmse"] for n, e in map_errors(fitted_a, truth_a, m).items()}}
-            for k, m in sets.items()}
-
-
 def _report_errors(report: Report, ds: Dataset, fitted: _Fitted, seen: _Observed,
                    known_maps: Mapping[str, Tensor]) -> None:
     """The report's ``errors`` against the dataset's ground truth, when it has one of the fitted maps' size (else a
     warning saying why there are none)."""
-    from .metrics import determined_at_truth, map_errors, observability_errors
+    from .metrics import determined_at_truth, errors_by_texel_set, map_errors, observability_errors
 
     if ds.gt is None:
         return
@@ -1195,7 +1170,7 @@ def _report_errors(report: Report, ds: Dataset, fitted: _Fitted, seen: _Observed
         report.errors["maps_determined_at_truth"] = {k: v["determined"] for k, v in both.items()
                                                      if "determined" in v}
     report.errors["maps_filled"] = map_errors(fit.maps, ds.gt.maps, observed, None, None)
-    report.errors["maps_by_texel_set"] = _errors_by_texel_set(fit.raw, ds.gt.maps, obs, seen.fp)
+    report.errors["maps_by_texel_set"] = errors_by_texel_set(fit.raw, ds.gt.maps, obs, seen.fp)
     report.errors["observability"] = both
     if known_maps:  # how far the given values are from the truth, over the observed texels
         report.errors["known"] = map_errors(known_maps, ds.gt.maps, observed, None, None)
