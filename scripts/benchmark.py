@@ -43,6 +43,13 @@ views and the per-region maps (capture.bench.measured.capture_benchmark); prints
 `scale`: time and peak memory of `shadecap reconstruct` end to end against the observed pixels (VIEWSxIMAGExMAPS
 configurations), per stage and device, with growth exponents (capture.bench.scale.run_scale_benchmark).
 
+    python scripts/benchmark.py scale --race 8x256x256 [--race-adam LR:SPP:SECONDS ...] [--race-steps 0,1,2,3,6]
+        [--race-json FILE] [--race-figure docs/figures/scale_race.png] [--out docs/benchmarks.md] ...
+
+`--race`: in the same run, shadecap against Mitsuba 3's plain Adam on one configuration's scene in the GGX + Lambert
+(F = 1) model Mitsuba reproduces (capture.bench.scale.race_dataset): the time each takes to reach a map error
+(scripts/mitsuba_race.py; needs Mitsuba and Debian's libllvm19), into the `scale-race` block of --out.
+
 Results go to stdout and, with --out, into the generated sections of docs/benchmarks.md.
 """
 
@@ -76,6 +83,38 @@ def _config(text: str) -> tuple[int, int, int] | str:
     return views, image, tex
 
 
+def _race_args(ap: argparse.ArgumentParser, args):
+    """``scale --race``: its options checked before anything runs; returns the race to run after the scale rows."""
+    import tempfile
+    from pathlib import Path
+
+    from mitsuba_race import RaceError, adam_spec, race, steps_of
+
+    from capture.bench.scale import race_dataset
+
+    if args.race == "none":
+        ap.error("--race takes one VIEWSxIMAGExMAPS configuration")
+    try:
+        specs = [adam_spec(s) for s in args.race_adam]
+        steps = steps_of(args.race_steps)
+    except argparse.ArgumentTypeError as e:
+        ap.error(str(e))
+
+    def run() -> None:
+        tmp = None if args.work else tempfile.TemporaryDirectory()
+        try:
+            data = race_dataset(*args.race, Path(args.work or tmp.name), args.threads)
+            race(data, steps, specs, threads=args.threads, json_path=args.race_json, figure=args.race_figure,
+                 out=args.out, block="scale-race")
+        except RaceError as e:
+            ap.error(str(e))
+        finally:
+            if tmp is not None:
+                tmp.cleanup()
+
+    return run
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["models", "approximations", "scaling", "reconstruction", "independent", "measured",
@@ -99,6 +138,13 @@ if __name__ == "__main__":
     ap.add_argument("--rows-json", default=None, help="scale: also write the rows as JSON")
     ap.add_argument("--earlier", nargs="+", default=[], help="scale: JSON rows of earlier runs to show beside "
                     "(e.g. from a GPU machine); with --configs none, the table is made from them alone")
+    ap.add_argument("--race", type=_config, default=None,
+                    help="scale: also race shadecap against Mitsuba's Adam on this VIEWSxIMAGExMAPS configuration")
+    ap.add_argument("--race-adam", nargs="+", default=["0.005:4:300"],
+                    help="scale --race: Mitsuba Adam runs as LR:SPP:SECONDS (default 0.005:4:300)")
+    ap.add_argument("--race-steps", default="0,1,2,3,6", help="scale --race: shadecap's footprint-step budgets")
+    ap.add_argument("--race-json", default=None, help="scale --race: write every point and evaluation here")
+    ap.add_argument("--race-figure", default=None, help="scale --race: the race's plot")
     ap.add_argument("--compile", nargs="*", default=None,
                     help="models to also time under torch.compile (default: the common ones)")
     ap.add_argument("--out", default=None, help="markdown file to write results into")
@@ -108,9 +154,13 @@ if __name__ == "__main__":
     args.device = str(resolve_device(args.device))
     tune_allocator()                    # as the command line does: the figures are what its users see
     if args.what == "scale":
+        race = _race_args(ap, args) if args.race is not None else None
         configs = [] if args.configs == ["none"] else args.configs
-        print(run_scale_benchmark(configs, args.devices, work=args.work, threads=args.threads, out=args.out,
-                                  figure=args.figure, rows_json=args.rows_json, earlier=args.earlier))
+        if configs or args.earlier or race is None:
+            print(run_scale_benchmark(configs, args.devices, work=args.work, threads=args.threads, out=args.out,
+                                      figure=args.figure, rows_json=args.rows_json, earlier=args.earlier))
+        if race is not None:
+            race()
     elif args.what == "independent":
         print(run_independent_benchmark(args.datasets, out=args.out, threads=args.threads, device=args.device))
     elif args.what == "models":

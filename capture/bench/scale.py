@@ -25,7 +25,7 @@ from pathlib import Path
 from .timing import growth_exponent, machine_description
 
 __all__ = ["DEFAULT_SCALE_CONFIGS", "SCALE_INTRO", "SCALE_SUPERSAMPLE", "ScaleError", "run_scale_benchmark",
-           "scale_run", "scale_table"]
+           "scale_run", "scale_table", "race_dataset", "RACE_MODEL"]
 
 #: jittered rays per pixel side of the benchmark's photos: 4 × 4 (not the fit's pixel-centre or stratum-centre
 #: sampling) keeps the photos independent of the fit while ``synth`` stays a small share of the benchmark's time at
@@ -65,16 +65,35 @@ def _cli(*args: str, threads: int | None) -> None:
         raise ScaleError(f"shadecap {args[0]} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
 
 
-def scale_run(views: int, image: int, tex: int, work: Path, device: str = "cpu", threads: int | None = None) -> dict:
-    """Synthesise (once; kept in ``work``) and reconstruct one configuration; the row of the table as a dict."""
+def _synth(views: int, image: int, tex: int, work: Path, threads: int | None, model: str | None = None) -> Path:
+    """The configuration's dataset in ``work``, synthesised once (with ``model`` instead of synth's default)."""
     for name, v in (("views", views), ("image", image), ("tex", tex)):
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ScaleError(f"{name} must be a positive integer, got {v!r}")
-    data = Path(work) / f"v{views}-i{image}-t{tex}"
-    t0 = time.perf_counter()
+    data = Path(work) / (f"v{views}-i{image}-t{tex}" + ("" if model is None else "-race"))
     if not (data / "scene.json").is_file():
         _cli("synth", "--out", str(data), "--views", str(views), "--size", str(image), "--tex", str(tex),
-             "--supersample", str(SCALE_SUPERSAMPLE), "--overwrite", threads=threads)
+             "--supersample", str(SCALE_SUPERSAMPLE), "--overwrite", *(("--model", model) if model else ()),
+             threads=threads)
+    return data
+
+
+#: The model of the race against Mitsuba 3's Adam (:func:`race_dataset`): GGX + Lambert with F = 1, which Mitsuba's
+#: blend of ``diffuse`` and ``roughconductor`` (material 'none') reproduces exactly (``scripts/mitsuba_adam.py``);
+#: the scale scenes' ``ggx-lambert`` has a Schlick Fresnel that no Mitsuba BSDF has.
+RACE_MODEL = "lambert+microfacet(D=ggx,G=smith,F=none)"
+
+
+def race_dataset(views: int, image: int, tex: int, work: Path, threads: int | None = None) -> Path:
+    """The race's twin of a configuration: the same rig, mesh, maps and 4 × 4 jittered photos as its scale scene,
+    in :data:`RACE_MODEL`; synthesised once into ``work``."""
+    return _synth(views, image, tex, Path(work), threads, RACE_MODEL)
+
+
+def scale_run(views: int, image: int, tex: int, work: Path, device: str = "cpu", threads: int | None = None) -> dict:
+    """Synthesise (once; kept in ``work``) and reconstruct one configuration; the row of the table as a dict."""
+    t0 = time.perf_counter()
+    data = _synth(views, image, tex, Path(work), threads)
     synth_s = time.perf_counter() - t0
     out = Path(work) / f"recon-{data.name}-{device.replace(':', '')}"
     flags = ["--threads", str(threads)] if threads else []
