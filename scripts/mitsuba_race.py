@@ -2,7 +2,9 @@
 """Time to a map error: shadecap against Mitsuba 3's plain Adam on the same photos, in one run.
 
     python scripts/mitsuba_race.py DATASET [--steps 0,1,2,3,6] [--adam LR:SPP:SECONDS ...] [--adam-json FILE ...]
-        [--json OUT.json] [--out docs/benchmarks.md] [--figure docs/figures/mitsuba_race.png]
+        [--metric MAP:SET ...] [--json OUT.json] [--out docs/benchmarks.md] [--block mitsuba-race]
+        [--figure docs/figures/mitsuba_race.png]
+    python scripts/mitsuba_race.py DATASET --from-json OUT.json [--metric ...] [--out ...] [--block ...] [--figure ...]
 
 shadecap fits the dataset once per footprint-step budget of ``--steps`` (``capture.bench.race.shadecap_curve``: its
 error at a time budget), then Mitsuba's Adam runs for each ``--adam LR:SPP:SECONDS`` (``scripts/mitsuba_adam.py``,
@@ -17,8 +19,9 @@ The dataset is a scene with ground truth in a model ``mitsuba_adam.py`` maps to 
 the truth's model. ``--metric`` names the errors raced on, as ``MAP:SET`` (a texel set of the report's
 ``maps_by_texel_set``: ``well_lit``, ``well_lit_visible_highlight``, …); by default the well-lit albedo and, for the
 GGX scene, albedo, f0 and roughness on the visible highlights (the texels image-formation's targets are stated on).
-One table per error; ``--block`` names the markdown block (default ``mitsuba-race``). Mitsuba is optional elsewhere
-and needed here only for ``--adam``.
+One table per error; ``--block`` names the markdown block (default ``mitsuba-race``). ``--from-json`` makes the tables
+and the figure again from a race saved by ``--json``, without fitting or running anything. Mitsuba is optional
+elsewhere and needed here only for ``--adam``.
 """
 
 from __future__ import annotations

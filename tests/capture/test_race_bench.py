@@ -1,6 +1,7 @@
 """Time to a map error (capture.bench.race, scripts/mitsuba_race.py): the crossing times and ratios of the table,
 and shadecap's error-against-time curve on photos Mitsuba 3 rendered (tests/fixtures/mitsuba)."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -159,3 +160,22 @@ def test_scale_race_options_are_checked_before_any_work(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and "budgets must be ≥ 0" in p.stderr, p.stderr
     assert not any(tmp_path.iterdir())
+
+
+def test_script_makes_the_tables_again_from_a_saved_race(tmp_path):
+    saved = {"dataset": str(TORUS), "machine": "box", "note": "Every run in one process.",
+             "shadecap": [{"steps": 0, "seconds": 2.0, "albedo_rmse_well_lit": 0.03}], "adam": [RUN]}
+    path = tmp_path / "race.json"
+    path.write_text(json.dumps(saved))
+    out = tmp_path / "bench.md"
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "mitsuba_race.py"), str(TORUS), "--from-json",
+                        str(path), "--out", str(out), "--block", "race-test"], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 0, p.stderr
+    text = out.read_text()
+    assert "<!-- begin:race-test -->\nMachine: box. Every run in one process. (Tables made from race.json.)" in text
+    assert "| 0 | 2.0 | 0.0300 | 20 s (**10 ×**) |" in text
+    path.write_text('{"shadecap": []}')
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "mitsuba_race.py"), str(TORUS), "--from-json",
+                        str(path)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "not a race saved by --json" in p.stderr, p.stderr
