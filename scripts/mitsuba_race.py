@@ -122,10 +122,13 @@ def race(dataset, steps: Sequence[int], specs: Sequence[tuple[float, int, float]
             raise RaceError(f"the saved Adam run (lr {run.get('lr')}, {run.get('spp')} spp) lacks "
                             f"{missing or 'evaluations'}: race it on the errors it measured (--metric)")
     label = model_label(load_dataset(dataset, check_images=False).gt.model)
-    shadecap = shadecap_curve(dataset, steps, label, threads=threads)
-    for p in shadecap:
+    def said(p: dict) -> None:
         print(f"shadecap, {p['steps']} footprint steps: {p['seconds']:.1f} s to the maps, "
               + ", ".join(f"{k} {p[k]:.4f}" for k in keys), flush=True)
+
+    print(f"shadecap: {len(steps)} fits of {dataset} with {label} (footprint steps {', '.join(map(str, steps))})",
+          flush=True)
+    shadecap = shadecap_curve(dataset, steps, label, threads=threads, on_point=said)
     runs = []
     if specs:
         from mitsuba_adam import run as adam_run

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 __all__ = ["time_to_error", "shadecap_curve", "race_table", "race_figure", "error_key", "flat_errors",
@@ -79,11 +79,12 @@ def _best(evaluations: Sequence[dict], key: str) -> dict:
     return min(evaluations, key=lambda e: float(e[key]))
 
 
-def shadecap_curve(dataset, steps: Sequence[int], model: str, work=None, threads: int | None = None) -> list[dict]:
+def shadecap_curve(dataset, steps: Sequence[int], model: str, work=None, threads: int | None = None,
+                   on_point: Callable[[dict], None] | None = None) -> list[dict]:
     """Fit ``dataset`` with ``model`` once per footprint-step budget in ``steps``; per fit the budget, the seconds
     to the maps (the report's total without :data:`_NOT_FITTING`), the report's total and every map's RMSE on every
     texel set of the report (:func:`flat_errors`; ``albedo_rmse_well_lit`` at least). ``work``: folder for the fits'
-    outputs (default a temporary one)."""
+    outputs (default a temporary one); ``on_point``: called with each point as soon as its fit ends (progress)."""
     from ..reconstruct import reconstruct
 
     steps = [int(n) for n in steps]
@@ -103,6 +104,8 @@ def shadecap_curve(dataset, steps: Sequence[int], model: str, work=None, threads
             total = float(r.times["total"])
             points.append({"steps": n, "seconds": total - sum(float(r.times.get(k, 0.0)) for k in _NOT_FITTING),
                            "total": total, **errors})
+            if on_point is not None:
+                on_point(points[-1])
     finally:
         if tmp is not None:
             tmp.cleanup()

@@ -84,8 +84,9 @@ def test_race_on_another_error_names_it_and_needs_it_on_both_sides():
 
 def test_shadecap_curve_on_mitsuba_photos(tmp_path):
     """More footprint steps, lower error on photos another renderer made; each point timed and measured."""
-    pts = shadecap_curve(TORUS, [0, 2], "lambert", work=tmp_path)
-    assert [p["steps"] for p in pts] == [0, 2]
+    seen = []
+    pts = shadecap_curve(TORUS, [0, 2], "lambert", work=tmp_path, on_point=seen.append)
+    assert [p["steps"] for p in pts] == [0, 2] and seen == pts          # each point reported as its fit ends
     for p in pts:
         assert 0 < p["seconds"] < p["total"]
         assert 0 < p["albedo_rmse_well_lit"] < 0.1
