@@ -26,7 +26,7 @@ from torch import Tensor
 __all__ = ["map_errors", "observability_errors", "determined_at_truth", "image_metrics", "MetricsError",
            "texel_normals", "coverage_advice", "HIGHLIGHT_DEG", "ADVICE_MIN_FRACTION", "well_lit_texels",
            "pixel_sized_texels", "highlight_texels", "visible_lobe_texels", "VISIBLE_LOBE_RATIO",
-           "errors_by_texel_set"]
+           "errors_by_texel_set", "texel_sets"]
 
 
 class MetricsError(ValueError):
@@ -262,16 +262,11 @@ def highlight_texels(obs, roughness: Tensor, min_angle_deg: float = 1.0) -> Tens
     return out.reshape(H, W)
 
 
-def errors_by_texel_set(raw: Mapping[str, Tensor], truth: Mapping[str, Tensor], obs, fp=None) -> dict:
-    """RMSE of the maps ``raw`` (canonical ``[H, W, C]``) against ``truth`` on the texel sets the image-formation
-    targets are stated on (docs/image-formation.md) — the report's ``errors.maps_by_texel_set``, and what the
-    Mitsuba baseline (``scripts/mitsuba_adam.py``) is measured on: ``{set: {"texels": n, map: rmse, …}}``, the sets
+def texel_sets(truth: Mapping[str, Tensor], obs, fp=None) -> dict[str, Tensor]:
+    """``{name: [H, W] bool}``: the texel sets the image-formation targets are stated on (docs/image-formation.md) —
     well lit (:func:`well_lit_texels` of the pixel-centre observations ``obs``), of those the ones that cover at
     least a pixel in some view (with the pixel footprints ``fp``) and, for specular truths, seen inside a highlight
-    (:func:`highlight_texels`) and of those the ones whose lobe is visible (:func:`visible_lobe_texels`). Roughness
-    is also given as GGX/Beckmann α = r² (``roughness_alpha``)."""
-    from materials.roughness import roughness_to_alpha
-
+    (:func:`highlight_texels`) and of those the ones whose lobe is visible (:func:`visible_lobe_texels`)."""
     lit = well_lit_texels(obs)
     sets = {"well_lit": lit}
     if fp is not None:
@@ -282,6 +277,21 @@ def errors_by_texel_set(raw: Mapping[str, Tensor], truth: Mapping[str, Tensor], 
             # of those, the texels whose lobe stands out of the diffuse term (a faint broad lobe barely shapes a
             # pixel, and its roughness trades with the albedo inside the noise)
             sets["well_lit_visible_highlight"] = sets["well_lit_highlight"] & visible_lobe_texels(truth)
+    return sets
+
+
+def errors_by_texel_set(raw: Mapping[str, Tensor], truth: Mapping[str, Tensor], obs=None, fp=None,
+                        sets: Mapping[str, Tensor] | None = None) -> dict:
+    """RMSE of the maps ``raw`` (canonical ``[H, W, C]``) against ``truth`` on the :func:`texel_sets` of ``obs`` and
+    ``fp`` (or on ``sets`` made by it once, for an optimiser measured at every few steps) — the report's
+    ``errors.maps_by_texel_set``, and what the Mitsuba baseline (``scripts/mitsuba_adam.py``) is measured on:
+    ``{set: {"texels": n, map: rmse, …}}``. Roughness is also given as GGX/Beckmann α = r² (``roughness_alpha``)."""
+    from materials.roughness import roughness_to_alpha
+
+    if sets is None:
+        if obs is None:
+            raise MetricsError("errors_by_texel_set needs the observations (obs) or the texel sets (sets)")
+        sets = texel_sets(truth, obs, fp)
     # roughness also as GGX/Beckmann α = r², the unit most renderers take
     with_alpha = (lambda d: {**d, "roughness_alpha": roughness_to_alpha(d["roughness"])}
                   if "roughness" in d else d)

@@ -155,7 +155,7 @@ def sensor_params(camera: Camera) -> dict:
     }
 
 
-def _bitmap(mi, arr) -> dict:
+def bitmap(mi, arr) -> dict:
     """A Mitsuba bitmap texture of a shadecap map ``[H, W, C]`` (row 0 = top = v = 1): raw linear values,
     bilinear, clamped at the edge. Texcoords are passed as (u, 1 − v) (:func:`mitsuba_mesh`), for which
     Mitsuba's row 0 is v' = 0 and its texel centres sit at ((j + ½)/W, (i + ½)/H), shadecap's centres."""
@@ -172,14 +172,14 @@ def bsdf_passes(mi, spec: dict, maps: dict[str, torch.Tensor]) -> list[tuple[str
     F = 1 —, alpha map = roughness², specular_reflectance map = f0).
     """
     spec = model_spec(spec)
-    diffuse = ("diffuse", {"type": "diffuse", "reflectance": _bitmap(mi, maps["albedo"])})
+    diffuse = ("diffuse", {"type": "diffuse", "reflectance": bitmap(mi, maps["albedo"])})
     if spec == model_spec(LAMBERT):
         return [diffuse]
     if spec == model_spec(GGX_LAMBERT_F1):
         alpha = roughness_to_alpha(maps["roughness"].double()).float()
         specular = ("specular", {"type": "roughconductor", "distribution": "ggx", "material": "none",
-                                 "sample_visible": True, "alpha": _bitmap(mi, alpha),
-                                 "specular_reflectance": _bitmap(mi, maps["f0"])})
+                                 "sample_visible": True, "alpha": bitmap(mi, alpha),
+                                 "specular_reflectance": bitmap(mi, maps["f0"])})
         return [diffuse, specular]
     raise ValueError(f"no Mitsuba equivalent is mapped for the model {spec}; supported: {LAMBERT}, {GGX_LAMBERT_F1}")
 

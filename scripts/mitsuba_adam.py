@@ -43,6 +43,7 @@ import torch  # noqa: E402
 from make_independent_fixtures import (  # noqa: E402
     GGX_LAMBERT_F1,
     LAMBERT,
+    bitmap,
     import_mitsuba,
     mitsuba_mesh,
     point_emitter,
@@ -51,7 +52,7 @@ from make_independent_fixtures import (  # noqa: E402
 
 from capture.bench.race import flat_errors  # noqa: E402
 from capture.dataset import load_dataset, model_spec  # noqa: E402
-from capture.metrics import errors_by_texel_set  # noqa: E402
+from capture.metrics import errors_by_texel_set, texel_sets  # noqa: E402
 from capture.observations import observe_views  # noqa: E402
 from materials.params import CANONICAL  # noqa: E402
 from materials.roughness import alpha_to_roughness, roughness_to_alpha  # noqa: E402
@@ -68,24 +69,20 @@ LIBLLVM_19 = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 ALPHA_MIN = 1e-3
 
 
-def _bitmap(mi, value: float, H: int, W: int, C: int) -> dict:
-    return {"type": "bitmap", "data": mi.TensorXf(np.full((H, W, C), value, np.float32)), "raw": True,
-            "filter_type": "bilinear", "wrap_mode": "clamp"}
-
-
 def _bsdf(mi, spec: dict, H: int, W: int) -> tuple[dict, dict, float]:
     """``(bsdf, maps, light_scale)``: the Mitsuba BSDF of the model ``spec`` with bitmaps at shadecap's parameter
     defaults; ``maps``: traversal key → (shadecap map, low, high, to canonical); ``light_scale``: the factor on every
     light's intensity (2 for the blend of weight ½, which halves each lobe)."""
     d = {n: CANONICAL[n].default for n in ("albedo", "f0", "roughness")}
-    diffuse = {"type": "diffuse", "reflectance": _bitmap(mi, d["albedo"], H, W, 3)}
+    diffuse = {"type": "diffuse", "reflectance": bitmap(mi, np.full((H, W, 3), d["albedo"], np.float32))}
     same = (lambda x: x)
     if spec == model_spec(LAMBERT):
         return diffuse, {"bsdf.reflectance.data": ("albedo", 0.0, 1.0, same)}, 1.0
     if spec == model_spec(GGX_LAMBERT_F1):
         alpha = float(roughness_to_alpha(torch.tensor(d["roughness"])))
         specular = {"type": "roughconductor", "distribution": "ggx", "material": "none", "sample_visible": True,
-                    "alpha": _bitmap(mi, alpha, H, W, 1), "specular_reflectance": _bitmap(mi, d["f0"], H, W, 3)}
+                    "alpha": bitmap(mi, np.full((H, W, 1), alpha, np.float32)),
+                    "specular_reflectance": bitmap(mi, np.full((H, W, 3), d["f0"], np.float32))}
         maps = {"bsdf.bsdf_0.reflectance.data": ("albedo", 0.0, 1.0, same),
                 "bsdf.bsdf_1.specular_reflectance.data": ("f0", 0.0, 1.0, same),
                 "bsdf.bsdf_1.alpha.data": ("roughness", ALPHA_MIN, 1.0, alpha_to_roughness)}
@@ -140,7 +137,9 @@ def run(path: str, seconds: float, spp: int, lr: float, every: int, seed: int = 
     H, W = truth["albedo"].shape[:2]
     bsdf, maps, light_scale = _bsdf(mi, spec, H, W)
     preps = [prepare(render_gbuffer(ds.mesh, v.camera, 1), ds.mesh, v.lights) for v in ds.views]
-    obs = observe_views(preps, [p.radiance for p in photos], (H, W))
+    # the texel sets the errors are taken on, made once (they depend on the truth and the photos only)
+    sets = texel_sets({n: truth[n] for n, *_ in maps.values()},
+                      observe_views(preps, [p.radiance for p in photos], (H, W)))
     shape = mitsuba_mesh(mi, ds.mesh, bsdf)
     scenes = _scenes(mi, ds, shape, spp, light_scale)
     params = mi.traverse(shape)
@@ -155,7 +154,7 @@ def run(path: str, seconds: float, spp: int, lr: float, every: int, seed: int = 
         for key, (name, _, _, canonical) in maps.items():
             a = torch.from_numpy(np.array(params[key], dtype=np.float32)).reshape(H, W, -1)
             fitted[name] = canonical(a)
-        return flat_errors(errors_by_texel_set(fitted, {n: truth[n] for n in fitted}, obs))
+        return flat_errors(errors_by_texel_set(fitted, {n: truth[n] for n in fitted}, sets=sets))
 
     order = list(range(len(scenes)))
     rng = random.Random(seed)

@@ -38,7 +38,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from make_independent_fixtures import GGX_LAMBERT_F1, LAMBERT  # noqa: E402
 
-from capture.bench.race import DEFAULT_KEY, error_key, race_figure, race_table, shadecap_curve  # noqa: E402
+from capture.bench.race import (  # noqa: E402
+    DEFAULT_KEY,
+    check_evaluations,
+    error_key,
+    race_figure,
+    race_table,
+    shadecap_curve,
+)
 from capture.bench.timing import machine_description  # noqa: E402
 from capture.dataset import load_dataset, model_label, model_spec  # noqa: E402
 from capture.report import atomic_write_text, replace_section  # noqa: E402
@@ -89,7 +96,11 @@ class RaceError(ValueError):
 def race_keys(dataset, metric: Sequence[str] | None = None) -> list[str]:
     """The errors to race on for ``dataset`` (``metric``: evaluation keys, or None for the defaults), each checked
     to be one both sides measure on its scene, before anything is fitted."""
-    ds = load_dataset(dataset, check_images=False)
+    return _keys_of(load_dataset(dataset, check_images=False), dataset, metric)
+
+
+def _keys_of(ds, dataset, metric: Sequence[str] | None) -> list[str]:
+    """:func:`race_keys` of the loaded dataset ``ds`` (``dataset``: its path, for the messages)."""
     spec = None if ds.gt is None else model_spec(ds.gt.model)
     if spec not in (model_spec(LAMBERT), model_spec(GGX_LAMBERT_F1)):
         raise RaceError(f"{dataset} is not a Lambert or Lambert + GGX (F = 1) scene with ground truth, the models the "
@@ -115,13 +126,17 @@ def race(dataset, steps: Sequence[int], specs: Sequence[tuple[float, int, float]
     of ``specs`` (plus the ``saved`` runs), raced on ``keys`` (:func:`race_keys`); returns the tables (one per
     error), and writes the JSON of every point, the figure and the ``block`` of the markdown file ``out`` when
     given."""
-    keys = race_keys(dataset, keys)
-    for run in saved:
-        missing = sorted({k for k in keys for e in run.get("evaluations", ()) if k not in e})
-        if missing or not run.get("evaluations"):
-            raise RaceError(f"the saved Adam run (lr {run.get('lr')}, {run.get('spp')} spp) lacks "
-                            f"{missing or 'evaluations'}: race it on the errors it measured (--metric)")
-    label = model_label(load_dataset(dataset, check_images=False).gt.model)
+    ds = load_dataset(dataset, check_images=False)
+    keys = _keys_of(ds, dataset, keys)
+    try:                                # the saved runs checked before minutes of fitting, not after
+        for run in saved:
+            for k in keys:
+                check_evaluations(run.get("evaluations", ()), f"the saved Adam run (lr {run.get('lr')}, "
+                                  f"{run.get('spp')} spp)", k)
+    except ValueError as e:
+        raise RaceError(str(e)) from None
+    label = model_label(ds.gt.model)
+
     def said(p: dict) -> None:
         print(f"shadecap, {p['steps']} footprint steps: {p['seconds']:.1f} s to the maps, "
               + ", ".join(f"{k} {p[k]:.4f}" for k in keys), flush=True)

@@ -19,7 +19,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 __all__ = ["time_to_error", "shadecap_curve", "race_table", "race_figure", "error_key", "flat_errors",
-           "DEFAULT_KEY"]
+           "check_evaluations", "DEFAULT_KEY"]
 
 #: Report times that are not part of reaching the maps: the error against the ground truth and the output files.
 _NOT_FITTING = ("metrics", "write")
@@ -45,7 +45,8 @@ def _describe(key: str) -> str:
     return f"{_SET_WORDS.get(texel_set, texel_set.replace('_', ' '))} {name} RMSE" if texel_set else key
 
 
-def _check_evaluations(evaluations: Sequence[dict], what: str, key: str) -> None:
+def check_evaluations(evaluations: Sequence[dict], what: str, key: str) -> None:
+    """A ValueError naming ``what`` unless every one of ``evaluations`` has finite ``seconds`` and ``key`` error."""
     if not evaluations:
         raise ValueError(f"{what} has no evaluations: give a run with at least one (seconds, error) entry")
     for e in evaluations:
@@ -58,9 +59,9 @@ def _check_evaluations(evaluations: Sequence[dict], what: str, key: str) -> None
 
 
 def _check_curves(shadecap: Sequence[dict], runs: Sequence[dict], key: str) -> None:
-    _check_evaluations(shadecap, "shadecap's curve", key)
+    check_evaluations(shadecap, "shadecap's curve", key)
     for run in runs:
-        _check_evaluations(run.get("evaluations", ()), _run_name(run), key)
+        check_evaluations(run.get("evaluations", ()), _run_name(run), key)
 
 
 def time_to_error(evaluations: Sequence[dict], error: float, key: str = DEFAULT_KEY) -> float | None:
@@ -68,7 +69,7 @@ def time_to_error(evaluations: Sequence[dict], error: float, key: str = DEFAULT_
     none is."""
     if not math.isfinite(error):
         raise ValueError(f"error must be finite, got {error!r}")
-    _check_evaluations(evaluations, "the run", key)
+    check_evaluations(evaluations, "the run", key)
     for e in sorted(evaluations, key=lambda e: float(e["seconds"])):
         if float(e[key]) <= error:
             return float(e["seconds"])
