@@ -455,6 +455,7 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
         M = system.B + lam * torch.diag_embed(system.diag)
         M = torch.where(system.live[:, None, None], M, eye)
         Minv, _ = torch.linalg.inv_ex(M)
+        del M                           # (a [T, P, P] copy no longer needed beside the inverse during the solve)
         rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))
         x = _pcg(system, lam, rhs, Minv, cg_iterations)
         cut = bool((x.abs() > radius).any())
@@ -600,6 +601,7 @@ def refine_joint(model: Model, obs: Observations, layout: Layout, theta: Tensor,
                 cost = data_cost + prior_of(theta)
                 history[0] = cost / data.n_res
             system = _Normal.of(data, prior, canon, dp, J, w, g, B)
+            B = None                    # (the data blocks: the system holds its own, scaled, for the steps)
             # the step's gain is measured against the cost under this iteration's objective: the units' update
             # above re-weighs the prior, so the previous entry of the history may be of another objective
             before = cost

@@ -4,7 +4,7 @@ pixel footprints (pixels × texels, :class:`PixelOperator`)."""
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import NamedTuple
 
 import torch
@@ -269,7 +269,6 @@ class PixelOperator:
         # texels → samples: the taps are sample-major, so the matrix is the taps' own row pointers, texel indices
         # (int32) and weights, shared rather than copied where their types are the matrix's (0.25 GB on 32 × 512²)
         self.gather_op = csr_matrix(so.taps.start, so.taps.index, so.taps.weight.to(vdt), (S, T))
-        self.group_op = _csr(fp.group, torch.arange(S, device=dev), fp.share.to(ACC), (self.R, S))
         # the entries' pixels and texels in 32 bits (indices only, no arithmetic; index_add takes them as int64: its
         # 32-bit path is 2.4× slower on the CPU)
         if max(self.R, T) < 2 ** 31:
@@ -310,22 +309,43 @@ class PixelOperator:
         if self._affine is not None:
             canon0, pred0, J = self._affine
             return pred0 + self.apply(J, canon - canon0)
-        return self.group_op @ self._sample_radiance(model, layout, canon)
+        return self._pixel_radiance(model, layout, canon)
 
-    def _sample_radiance(self, model: Model, layout: Layout, canon: Tensor) -> Tensor:
-        """``[S, 3]`` the samples' radiance at canonical texel parameters ``canon [T, P]``, evaluated in blocks of
-        :data:`JACOBIAN_BLOCK` samples so that the model's temporaries stay bounded whatever the capture's size
-        (32 × 256² photos, 2.2 M samples, GGX + Lambert: 0.44–0.64 GB above the result at once, 0.12–0.25 GB in
-        blocks, in the same time)."""
+    def _sample_blocks(self, device: torch.device) -> Iterator[tuple[int, int]]:
+        """``(a, b)``: the blocks of samples ``a … b − 1`` of :data:`JACOBIAN_BLOCK` that the evaluations and the
+        samples' products work in."""
+        S, step = self.fp.samples.n_samples, block_size(JACOBIAN_BLOCK, device)
+        for a in range(0, S, step):
+            yield a, min(a + step, S)
+
+    def _read(self, x: Tensor, a: int, b: int) -> Tensor:
+        """``[b − a, P]`` the texture reads of the samples ``a … b − 1`` from texel values ``x [T, P]`` (in
+        ``gather_op``'s precision): its rows, sliced without a copy."""
+        G = self.gather_op
+        crow = G.crow_indices()
+        lo, hi = int(crow[a]), int(crow[b])
+        return csr_matrix(crow[a:b + 1] - lo, G.col_indices()[lo:hi], G.values()[lo:hi], (b - a, self.T)) @ x
+
+    def _add_to_pixels(self, out: Tensor, x: Tensor, a: int, b: int) -> None:
+        """Add the values ``x [b − a, C]`` of the samples ``a … b − 1``, times their shares, to their pixels' rows of
+        ``out [R, C]``: a block of the sum of each pixel's samples (in the samples' order, as a sparse product of
+        the pixels' rows would add them), with no pixels × samples matrix kept (0.07 GB on 32 × 512² photos)."""
+        out.index_add_(0, self.fp.group[a:b], x.to(out.dtype) * self.fp.share[a:b, None].to(out.dtype))
+
+    def _pixel_radiance(self, model: Model, layout: Layout, canon: Tensor) -> Tensor:
+        """``[R, 3]`` the pixels' radiance at canonical texel parameters ``canon [T, P]``: the samples evaluated and
+        summed into their pixels in blocks of :data:`JACOBIAN_BLOCK` samples, so that neither the model's
+        temporaries nor the samples' reads and radiance are ever whole (32 × 256² photos, 2.2 M samples, GGX +
+        Lambert: the model's temporaries whole took 0.44–0.64 GB, in blocks 0.12–0.25 GB in the same time; 32 ×
+        512², 5.3 M samples, the reads and radiance whole 0.27 GB more)."""
         so = self.fp.samples
-        phi = self.gather_op @ canon.to(self.gather_op.dtype)
-        rad = torch.empty(so.n_samples, 3, dtype=ACC, device=canon.device)
+        x = canon.to(self.gather_op.dtype)
+        out = torch.zeros(self.R, 3, dtype=ACC, device=canon.device)
         with torch.no_grad():
-            step = block_size(JACOBIAN_BLOCK, canon.device)
-            for a in range(0, so.n_samples, step):
-                b = min(a + step, so.n_samples)
-                rad[a:b] = so.predict_rows(model, layout.split(phi[a:b].to(so.dtype)), a, b)
-        return rad
+            for a, b in self._sample_blocks(canon.device):
+                rad = so.predict_rows(model, layout.split(self._read(x, a, b).to(so.dtype)), a, b)
+                self._add_to_pixels(out, rad.to(ACC), a, b)
+        return out
 
     def linearise(self, model: Model, layout: Layout, canon: Tensor, groups) -> tuple[Tensor, PixelJacobian]:
         """``(pred [R, 3], J)`` at ``canon [T, P]``: the pixel predictions and their Jacobian
@@ -339,20 +359,20 @@ class PixelOperator:
             return self.predict(model, layout, canon), self._affine[2]
         P = canon.shape[1]
         self._blocks = None             # (the last linearisation's blocks and Jacobian freed before the new ones)
-        pred_s, Jc, mask = self._sample_jacobian(model, layout, canon, groups)
-        pred = self.group_op @ pred_s
-        if self._form(int(mask.sum()), Jc.device) == "assembled":
-            J = self._jacobian(Jc, mask, P)
+        pred, JcT, mask = self._sample_jacobian(model, layout, canon, groups)
+        if self._form(int(mask.sum()), JcT.device) == "assembled":
+            J = self._jacobian(JcT, mask, P)
         else:
-            J = self._sample_form(Jc, mask, P)
-        del Jc
+            cs, ps = torch.nonzero(mask, as_tuple=True)
+            J = SampleJacobian(cs, ps, JcT, P)
+        del JcT
         if not self._affine_checked:
             self._affine_checked = True
             free = sorted({c for cs in groups for c in cs}) == list(range(P))
             if free and all(s.linear for s in layout.specs):
                 # other values: half of each parameter (inside every range that holds 0 and the value)
                 other = 0.5 * canon
-                direct = self.group_op @ self._sample_radiance(model, layout, other)
+                direct = self._pixel_radiance(model, layout, other)
                 linear = pred + self.apply(J, other - canon)
                 scale = float(pred.abs().max()) + 1e-30
                 if float((direct - linear).abs().max()) <= AFFINE_TOL * scale:
@@ -360,40 +380,42 @@ class PixelOperator:
         return pred, J
 
     def _sample_jacobian(self, model: Model, layout: Layout, canon: Tensor, groups) -> tuple[Tensor, Tensor, Tensor]:
-        """``(pred [S, 3], Jc [S, k], mask [3, P])``: the samples' predictions and, of their Jacobian, only the
-        ``k`` (channel, parameter) pairs of ``mask`` that some sample depends on (GGX + Lambert: 9 of 21, the
-        albedo and f0 act on their own channel), block by block (:func:`jacobian_blocks`) so that neither the
-        whole ``[S, 3, P]`` Jacobian nor the whole autograd graph is ever held."""
+        """``(pred [R, 3], JcT [k, S], mask [3, P])``: the pixels' predictions and, of the samples' Jacobian, only
+        the ``k`` (channel, parameter) pairs of ``mask`` that some sample depends on (GGX + Lambert: 9 of 21, the
+        albedo and f0 act on their own channel), pair-major (:class:`SampleJacobian`'s layout, which the assembled
+        form reads too: made sample-major, the samples' form took a transposed copy, 0.19 GB more on 32 × 512²
+        photos), block by block (:func:`jacobian_blocks`) so that neither the whole ``[S, 3, P]`` Jacobian nor the
+        whole autograd graph is ever held."""
         so = self.fp.samples
         phi = self.gather_op @ canon.to(self.gather_op.dtype)
         S, P = phi.shape
-        pred = torch.empty(S, 3, dtype=ACC, device=phi.device)
+        pred = torch.zeros(self.R, 3, dtype=ACC, device=phi.device)
         # the union of the blocks' pairs, in their row-major order; a block that lacks some of them has zeros there.
-        # Each block's values go straight into Jc, which grows (a copy) when a block brings a pair the earlier ones
-        # lacked: keeping the blocks' values until all were seen held a second Jc (0.38 GB on 32 × 512² photos)
+        # Each block's values go straight into JcT, which grows (a copy) when a block brings a pair the earlier ones
+        # lacked: keeping the blocks' values until all were seen held a second one (0.38 GB on 32 × 512² photos)
         mask = torch.zeros(3, P, dtype=torch.bool, device=phi.device)
         # the values in the precision the model is evaluated in (float32 gradients are exact in it): half the bytes
         # of float64 at the linearisation's peak (0.38 GB on 32 × 512² photos)
         jdt = self.gather_op.dtype
-        Jc = where = None                               # where: each kept pair's column in Jc
+        JcT = where = None                              # where: each kept pair's row in JcT
         for a, b, pb, Jb in jacobian_blocks(model, layout, so, phi, groups, canonical=True,
                                               block=block_size(JACOBIAN_BLOCK, phi.device)):
-            pred[a:b] = pb
+            self._add_to_pixels(pred, pb, a, b)
             m = (Jb != 0).any(0)
-            if Jc is None or bool((m & ~mask).any()):
+            if JcT is None or bool((m & ~mask).any()):
                 union = mask | m
-                grown = torch.zeros(S, int(union.sum()), dtype=jdt, device=phi.device)
+                grown = torch.zeros(int(union.sum()), S, dtype=jdt, device=phi.device)
                 new_where = torch.cumsum(union.reshape(-1), 0).reshape(3, P) - 1
-                if Jc is not None:
-                    grown[:, new_where[mask]] = Jc
-                Jc, mask, where = grown, union, new_where
+                if JcT is not None:
+                    grown[new_where[mask]] = JcT
+                JcT, mask, where = grown, union, new_where
             cs, ps = torch.nonzero(m, as_tuple=True)
-            Jc[a:b, where[m]] = Jb[:, cs, ps].to(jdt)
+            JcT[where[m], a:b] = Jb[:, cs, ps].t().to(jdt)
             del Jb
         del phi
-        if Jc is None:                                  # no samples
-            Jc = torch.zeros(S, 0, dtype=jdt, device=pred.device)
-        return pred, Jc, mask
+        if JcT is None:                                 # no samples
+            JcT = torch.zeros(0, S, dtype=jdt, device=pred.device)
+        return pred, JcT, mask
 
     def _form(self, k: int, device: torch.device) -> str:
         """The Jacobian's form (:data:`JACOBIAN_FORMS`), decided once, at the first linearisation, for ``k`` kept
@@ -409,28 +431,24 @@ class PixelOperator:
             self.jacobian_form = form
         return self.jacobian_form
 
-    def _sample_form(self, Jc: Tensor, mask: Tensor, P: int) -> SampleJacobian:
-        """The :class:`SampleJacobian` of the samples' Jacobian ``Jc [S, k]`` at the pairs of ``mask [3, P]``."""
-        cs, ps = torch.nonzero(mask, as_tuple=True)
-        return SampleJacobian(cs, ps, Jc.t().contiguous(), P)
-
     def _n_params(self, J: PixelJacobian | SampleJacobian) -> int:
         """The parameters per texel, P, of a linearisation."""
         return J.n_params if isinstance(J, SampleJacobian) else J.At.shape[0] // self.T
 
-    def _entry_values(self, Jc: Tensor, a: int, b: int, dtype: torch.dtype | None = None) -> Tensor:
-        """``[b − a, k]`` the values of the entries ``a … b − 1``: their rows of ``corner_op · Jc``, summed in
-        ``dtype`` (None: ``Jc``'s). In another dtype only the run of samples they read is converted: the rays are
-        made pixel by pixel, so a block of entries (of pixels) reads a short run (on 32 × 256² photos the runs of
-        the blocks of :data:`PLACE_BLOCK` entries add up to 1.3 × the samples)."""
+    def _entry_values(self, JcT: Tensor, a: int, b: int, dtype: torch.dtype | None = None) -> Tensor:
+        """``[b − a, k]`` the values of the entries ``a … b − 1``: their rows of ``corner_op · JcTᵀ``, summed in
+        ``dtype`` (None: ``JcT``'s). Only the run of samples they read is copied sample-major (and converted): the
+        rays are made pixel by pixel, so a block of entries (of pixels) reads a short run (on 32 × 256² photos the
+        runs of the blocks of :data:`PLACE_BLOCK` entries add up to 1.3 × the samples)."""
         crow, col, cval = self.corner_op.crow_indices(), self.corner_op.col_indices(), self.corner_op.values()
         lo, hi = int(crow[a]), int(crow[b])
-        dtype = Jc.dtype if dtype is None else dtype
-        cols, s0, s1 = col[lo:hi], 0, Jc.shape[0]
-        if dtype != Jc.dtype and hi > lo:
+        dtype = JcT.dtype if dtype is None else dtype
+        cols, s0, s1 = col[lo:hi], 0, 0
+        if hi > lo:
             s0, s1 = int(cols.min()), int(cols.max()) + 1
             cols = cols - s0
-        return csr_matrix(crow[a:b + 1] - lo, cols, cval[lo:hi].to(dtype), (b - a, s1 - s0)) @ Jc[s0:s1].to(dtype)
+        run = JcT[:, s0:s1].t().to(dtype).contiguous()
+        return csr_matrix(crow[a:b + 1] - lo, cols, cval[lo:hi].to(dtype), (b - a, s1 - s0)) @ run
 
     def _transposed_gather(self) -> Tensor:
         """``[T, S]`` the transpose of ``gather_op`` (samples → texels), made once from its triplets."""
@@ -449,15 +467,15 @@ class PixelOperator:
             self._gather_t = csr_matrix(crow, sample, G.values()[order], (self.T, G.shape[0]))
         return self._gather_t
 
-    def _jacobian(self, Jc: Tensor, mask: Tensor, P: int) -> PixelJacobian:
-        """The :class:`PixelJacobian` of the samples' Jacobian ``Jc [S, k]`` at the (channel, parameter) pairs of
+    def _jacobian(self, JcT: Tensor, mask: Tensor, P: int) -> PixelJacobian:
+        """The :class:`PixelJacobian` of the samples' Jacobian ``JcT [k, S]`` at the (channel, parameter) pairs of
         ``mask [3, P]`` (the pairs some sample depends on; Lambert's albedo: the diagonal, a third of the block):
-        the entries' values ``V = corner_op · Jc`` ``[E, k]``, made block by block of entries straight into their
+        the entries' values ``V = corner_op · JcTᵀ`` ``[E, k]``, made block by block of entries straight into their
         places in ``A`` and read from there into ``At`` (V whole would be 72 bytes per entry more at the peak). The
         matrices' index arrays depend on the pattern only and are kept across linearisations."""
         key = tuple(mask.reshape(-1).tolist())
-        E, k = self.E, Jc.shape[1]
-        dev = Jc.device
+        E, k = self.E, JcT.shape[0]
+        dev = JcT.device
         if self._pattern is None or self._pattern[0] != key:
             self._pattern = None                # (the old index arrays freed before the new ones are built)
             cs, ps = torch.nonzero(mask, as_tuple=True)
@@ -472,12 +490,12 @@ class PixelOperator:
             self._pattern = (key, cs, ps, by_pix, by_tex, (by_pix.row_pointers().to(itype), col_a),
                              (by_tex.row_pointers().to(itype), col_t))
         _, cs, ps, by_pix, by_tex, a_idx, t_idx = self._pattern
-        # the values in the precision the model was evaluated in (Jc's): float32 evaluations make float32 values, whose
+        # the values in the precision the model was evaluated in (JcT's): float32 evaluations make float32 values, whose
         # products read half the bytes (with 32-bit indices 5.2 against 7.7 ms per product of 4.4 M non-zeros)
-        vdt = Jc.dtype
+        vdt = JcT.dtype
         # (summed in float64 from the float32 samples: the sums' rounding moved the ill-conditioned fits — one view
         # of the stress scene, roughness on observable texels 0.0020 → 0.0041)
-        a_vals = by_pix.scatter(lambda a, b: self._entry_values(Jc, a, b, ACC),
+        a_vals = by_pix.scatter(lambda a, b: self._entry_values(JcT, a, b, ACC),
                                 torch.empty(E * k, dtype=vdt, device=dev))
         perm = by_tex.order
         t_vals = by_tex.scatter(lambda a, b: a_vals[by_pix.place(perm[a:b])],
@@ -497,8 +515,8 @@ class PixelOperator:
         # the same Jacobian (an affine model's) with the same weights (L2: all ones) has the same blocks
         if cached is not None and cached[0] is J and torch.equal(cached[1], w):
             return self.apply_t(J, wr), cached[2]
-        # the values the entries' are made from: the samples' (sample-major, for the sparse products), or A's
-        vals, by_pix = (J.JcT.t().contiguous(), None) if samples else (J.A.values(), self._pattern[3])
+        # the values the entries' are made from: the samples' (pair-major, a run of them copied per block), or A's
+        vals, by_pix = (J.JcT, None) if samples else (J.A.values(), self._pattern[3])
         # Σ over a texel's entries of V_i w V_j, in blocks of entries: the [E, pairs] products whole are 300 MB
         # (GGX + Lambert at 256²) that cost more to allocate than to fill
         terms = torch.zeros(self.T, len(i), dtype=ACC, device=w.device)
@@ -514,27 +532,38 @@ class PixelOperator:
         off = pq != qp                  # (a parameter pair repeats over channels: roughness with itself on each)
         B = torch.zeros(self.T, P * P, dtype=terms.dtype, device=terms.device).index_add_(1, pq, terms)
         B = B.index_add_(1, qp[off], terms[:, off]).reshape(self.T, P, P)
-        self._blocks = (J, w, B)
+        if self._affine is not None:    # (only an affine model's Jacobian comes back; others' blocks would be held
+            self._blocks = (J, w, B)    # for nothing until the next linearisation)
         return self.apply_t(J, wr), B
 
     def apply(self, J: PixelJacobian | SampleJacobian, u: Tensor) -> Tensor:
         """``J u`` ``[R, 3]`` for texel updates ``u [T, P]``."""
         if isinstance(J, SampleJacobian):
-            d = self.gather_op @ u.to(self.gather_op.dtype)                        # [S, P] the samples' changes
-            q = torch.zeros(d.shape[0], 3, dtype=d.dtype, device=d.device)
-            for j, (c, p) in enumerate(zip(J.cs.tolist(), J.ps.tolist(), strict=True)):
-                q[:, c].addcmul_(J.JcT[j], d[:, p])
-            return (self.group_op @ q.to(self.group_op.dtype)).to(u.dtype)
+            # block by block of samples: their changes and radiance changes whole were 0.34 GB of fresh pages per
+            # product on 32 × 512² photos (5.3 M samples)
+            x = u.to(self.gather_op.dtype)
+            out = torch.zeros(self.R, 3, dtype=ACC, device=u.device)
+            pairs = list(zip(J.cs.tolist(), J.ps.tolist(), strict=True))
+            for a, b in self._sample_blocks(u.device):
+                d = self._read(x, a, b)                                             # [n, P] the samples' changes
+                q = torch.zeros(b - a, 3, dtype=d.dtype, device=d.device)
+                for j, (c, p) in enumerate(pairs):
+                    q[:, c].addcmul_(J.JcT[j, a:b], d[:, p])
+                self._add_to_pixels(out, q, a, b)
+            return out.to(u.dtype)
         return torch.mv(J.A, u.reshape(-1).to(J.A.dtype)).to(u.dtype).reshape(self.R, 3)
 
     def apply_t(self, J: PixelJacobian | SampleJacobian, v: Tensor) -> Tensor:
         """``Jᵀ v`` ``[T, P]`` for pixel values ``v [R, 3]``."""
         if isinstance(J, SampleJacobian):
             dt = J.JcT.dtype
-            vs = v.to(dt)[self.fp.group] * self.fp.share.to(dt)[:, None]           # [S, 3] each sample's part
-            z = torch.zeros(vs.shape[0], self._n_params(J), dtype=dt, device=vs.device)
-            for j, (c, p) in enumerate(zip(J.cs.tolist(), J.ps.tolist(), strict=True)):
-                z[:, p].addcmul_(J.JcT[j], vs[:, c])
+            vd = v.to(dt)
+            z = torch.zeros(J.JcT.shape[1], self._n_params(J), dtype=dt, device=v.device)
+            pairs = list(zip(J.cs.tolist(), J.ps.tolist(), strict=True))
+            for a, b in self._sample_blocks(v.device):
+                vs = vd[self.fp.group[a:b]] * self.fp.share[a:b, None].to(dt)      # [n, 3] each sample's part
+                for j, (c, p) in enumerate(pairs):
+                    z[a:b, p].addcmul_(J.JcT[j, a:b], vs[:, c])
             return (self._transposed_gather() @ z).to(v.dtype)
         return torch.mv(J.At, v.reshape(-1).to(J.At.dtype)).to(v.dtype).reshape(self.T, -1)
 

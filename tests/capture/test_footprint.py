@@ -162,7 +162,7 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
 
 def test_assembled_values_are_summed_in_float64_from_the_float32_samples(ggx, monkeypatch):
     """The samples' Jacobian is held in float32 (the model's precision), and the assembled form sums the entries'
-    values from it in float64 over the run of samples each block of entries reads: exactly ``corner_op · Jc`` in
+    values from it in float64 over the run of samples each block of entries reads: exactly ``corner_op · Jcᵀ`` in
     float64, whatever the block size (the float32 sum differs)."""
     import capture.fit.operators as ops
 
@@ -170,14 +170,14 @@ def test_assembled_values_are_summed_in_float64_from_the_float32_samples(ggx, mo
     model, layout = sc.model, Layout.of(sc.model)
     op = PixelOperator(fp, T * T, jacobian="assembled")
     canon = torch.rand(T * T, layout.P, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 0.8 + 0.1
-    _, Jc, _ = op._sample_jacobian(model, layout, canon, param_groups(layout))
-    assert Jc.dtype == torch.float32
-    exact = op.corner_op.to(torch.float64) @ Jc.double()
+    _, JcT, _ = op._sample_jacobian(model, layout, canon, param_groups(layout))
+    assert JcT.dtype == torch.float32 and JcT.shape[1] == fp.n_samples
+    exact = op.corner_op.to(torch.float64) @ JcT.double().t()
     for block in (op.E, 61):
-        got = torch.cat([op._entry_values(Jc, a, min(a + block, op.E), torch.float64)
+        got = torch.cat([op._entry_values(JcT, a, min(a + block, op.E), torch.float64)
                          for a in range(0, op.E, block)])
         assert torch.equal(got, exact), block
-    assert not torch.equal(op._entry_values(Jc, 0, op.E).double(), exact)
+    assert not torch.equal(op._entry_values(JcT, 0, op.E).double(), exact)
     # and these, rounded once to float32, are the values both matrices hold (placed in their own orders)
     monkeypatch.setattr(ops, "PLACE_BLOCK", 61)
     _, C = op.linearise(model, layout, canon, param_groups(layout))
@@ -313,7 +313,9 @@ def test_an_affine_model_is_linearised_once():
     assert op.affine
     other = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64)
     so = sel.samples
-    direct = op.group_op @ so.predict(model, layout.split(op.gather_op @ other))
+    rad = so.predict(model, layout.split(op.gather_op @ other))
+    direct = torch.zeros(sel.n_pixels, 3, dtype=torch.float64).index_add_(0, sel.group,
+                                                                          sel.share[:, None].double() * rad)
     via = op.predict(model, layout, other)
     assert float((via - direct).abs().max()) < 1e-12 * float(direct.abs().max())
     pred, _ = op.linearise(model, layout, other, param_groups(layout))
