@@ -13,14 +13,15 @@ from torch import Tensor
 
 from materials.model import Model
 from materials.params import CANONICAL
+from renderer.device import block_size
 
 from ..observations import Observations
 from .layout import ACC, MAX_STEP, Layout, SolverError
 from .noise import NOISE, irls_weights, noise_sigma, photo_noise_ratio, robust_rho
 from .observability import std_threshold
-from .operators import CsrPattern, pixel_operator, sampling_operator
+from .operators import CsrPattern, csr_rows, pixel_operator, sampling_operator
 from .sharing import shared_default
-from .texel import jacobian, weighted_cost
+from .texel import JACOBIAN_BLOCK, jacobian, weighted_cost
 
 __all__ = ["PRIOR_UNIT", "JOINT_ATTEMPTS", "refine_joint"]
 
@@ -302,10 +303,19 @@ class _JointData:
         """The data term's Gauss-Newton product with ``v [T, P]`` in θ."""
         if self.pix is not None:
             return self.pix.apply_t(J, w * self.pix.apply(J, v * dp)) * dp
-        # J_sᵀ W_s J_s u_s as two batched products (bmm: 5.4 ms against 9.4 ms for einsum, S = 204 000)
-        u = self.gather(v * dp)                                                # [S, P]
-        ju = torch.bmm(J, u[:, :, None])[..., 0] * w                       # [S, 3]
-        return self.scatter(torch.bmm(ju[:, None, :], J)[:, 0]) * dp
+        # J_sᵀ W_s J_s u_s as two batched products (bmm: 5.4 ms against 9.4 ms for einsum, S = 204 000), a block of
+        # samples at a time: the samples' reads and radiance changes whole were 0.13 GB of fresh pages per product
+        # on 32 × 512² photos (1.6 M samples); only the result, which the scatter reads whole, is made whole
+        x = v * dp
+        S = J.shape[0]
+        out = torch.empty(S, self.P, dtype=J.dtype, device=J.device)
+        step = block_size(JACOBIAN_BLOCK, J.device)
+        for a in range(0, S, step):
+            b = min(a + step, S)
+            u = csr_rows(self.S_op, a, b) @ x                                  # [n, P]
+            ju = torch.bmm(J[a:b], u[:, :, None])[..., 0] * w[a:b]            # [n, 3]
+            out[a:b] = torch.bmm(ju[:, None, :], J[a:b])[:, 0]
+        return self.scatter(out) * dp
 
 
 def _prior_names(model: Model, layout: Layout, sharing: float, sharing_params: Sequence[str] | None) -> list[str]:

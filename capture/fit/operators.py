@@ -16,8 +16,8 @@ from renderer.device import block_size, memory_headroom
 from .layout import ACC, Layout, SolverError
 from .texel import JACOBIAN_BLOCK, jacobian_blocks
 
-__all__ = ["CsrPattern", "csr_matrix", "sampling_operator", "PixelJacobian", "SampleJacobian", "PixelOperator",
-           "pixel_operator", "AFFINE_TOL", "NORMAL_BLOCK", "JACOBIAN_FORMS", "ASSEMBLED_SHARE",
+__all__ = ["CsrPattern", "csr_matrix", "csr_rows", "sampling_operator", "PixelJacobian", "SampleJacobian",
+           "PixelOperator", "pixel_operator", "AFFINE_TOL", "NORMAL_BLOCK", "JACOBIAN_FORMS", "ASSEMBLED_SHARE",
            "check_jacobian_form", "check_memory_budget"]
 
 #: Largest difference, relative to the largest pixel value, between the model evaluated at other parameter values
@@ -197,6 +197,15 @@ def csr_matrix(crow: Tensor, col: Tensor, vals: Tensor, shape: tuple[int, int]) 
         return torch.sparse_csr_tensor(crow, col, vals, shape)
 
 
+def csr_rows(M: Tensor, a: int, b: int) -> Tensor:
+    """The rows ``a … b − 1`` of the sparse CSR matrix ``M`` as a CSR matrix of their own, sharing ``M``'s column
+    indices and values (slices, no copy): products a block of rows at a time keep their operands and results to the
+    block's size, with each row's sum the whole product's."""
+    crow = M.crow_indices()
+    lo, hi = int(crow[a]), int(crow[b])
+    return csr_matrix(crow[a:b + 1] - lo, M.col_indices()[lo:hi], M.values()[lo:hi], (b - a, M.shape[1]))
+
+
 def _csr(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
     """A CSR matrix of the triplets ``(rows, cols, vals)``, built by one stable sort of the rows. Repeated
     (row, col) pairs are kept as separate entries, which the sparse products sum — no coalescing sort over both
@@ -321,10 +330,7 @@ class PixelOperator:
     def _read(self, x: Tensor, a: int, b: int) -> Tensor:
         """``[b − a, P]`` the texture reads of the samples ``a … b − 1`` from texel values ``x [T, P]`` (in
         ``gather_op``'s precision): its rows, sliced without a copy."""
-        G = self.gather_op
-        crow = G.crow_indices()
-        lo, hi = int(crow[a]), int(crow[b])
-        return csr_matrix(crow[a:b + 1] - lo, G.col_indices()[lo:hi], G.values()[lo:hi], (b - a, self.T)) @ x
+        return csr_rows(self.gather_op, a, b) @ x
 
     def _add_to_pixels(self, out: Tensor, x: Tensor, a: int, b: int) -> None:
         """Add the values ``x [b − a, C]`` of the samples ``a … b − 1``, times their shares, to their pixels' rows of
