@@ -405,10 +405,13 @@ class _Normal:
         if prior is not None:
             pg, pdiag = prior.linearise(canon, dp)
             g = g + pg
-        B = B * dp[:, :, None] * dp[:, None, :]
+        # one new [T, P, P] array, the rest in place on it (a fresh one per operation was 3 × 14 bytes per texel and
+        # parameter pair more at the linearisation's peak; 0.3 GB on 512² maps); the same values to the last bit
+        B = B * dp[:, :, None]
+        B.mul_(dp[:, None, :])
         diag = torch.diagonal(B, dim1=-2, dim2=-1).clone()
         if prior is not None:
-            B = B + torch.diag_embed(pdiag)
+            B.diagonal(dim1=-2, dim2=-1).add_(pdiag)
         live = diag.sum(-1) > 0
         diag = diag + 1e-9 * diag.mean(-1, keepdim=True).clamp_min(1e-30)
         return cls(data, prior, dp, J, w, g, B, diag, live)
@@ -462,10 +465,13 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
     # iteration the loop stops, so 4 attempts (λ ≤ 0.064) ended the refinement before its first step on the
     # small fixed-rig scene
     for _attempt in range(JOINT_ATTEMPTS):
-        M = system.B + lam * torch.diag_embed(system.diag)
-        M = torch.where(system.live[:, None, None], M, eye)
+        # the damped blocks made in one copy of the system's, in place (diag_embed and where made two more, 0.2 GB on
+        # 512² maps), and freed once inverted: during the solve the inverse is the only other [T, P, P] array
+        M = system.B.clone()
+        M.diagonal(dim1=-2, dim2=-1).add_(lam * system.diag)
+        M[~system.live] = eye
         Minv, _ = torch.linalg.inv_ex(M)
-        del M                           # (a [T, P, P] copy no longer needed beside the inverse during the solve)
+        del M
         rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))
         x = _pcg(system, lam, rhs, Minv, cg_iterations)
         cut = bool((x.abs() > radius).any())
