@@ -405,8 +405,8 @@ class _Normal:
         if prior is not None:
             pg, pdiag = prior.linearise(canon, dp)
             g = g + pg
-        # one new [T, P, P] array, the rest in place on it (a fresh one per operation was 3 × 14 bytes per texel and
-        # parameter pair more at the linearisation's peak; 0.3 GB on 512² maps); the same values to the last bit
+        # one new [T, P, P] array, the rest in place on it: a fresh one per operation held two more beside the data
+        # blocks at once (0.2 GB on 512² maps, 3.2 GB on 2048²); the same values to the last bit
         B = B * dp[:, :, None]
         B.mul_(dp[:, None, :])
         diag = torch.diagonal(B, dim1=-2, dim2=-1).clone()
