@@ -406,7 +406,7 @@ class _Normal:
             pg, pdiag = prior.linearise(canon, dp)
             g = g + pg
         # one new [T, P, P] array, the rest in place on it: a fresh one per operation held two more beside the data
-        # blocks at once (0.2 GB on 512² maps, 3.2 GB on 2048²); the same values to the last bit
+        # blocks at once (0.2 GB on 512² maps, 3.3 GB on 2048²); the same values to the last bit
         B = B * dp[:, :, None]
         B.mul_(dp[:, None, :])
         diag = torch.diagonal(B, dim1=-2, dim2=-1).clone()
