@@ -453,7 +453,7 @@ class PixelOperator:
         if hi > lo:
             s0, s1 = int(cols.min()), int(cols.max()) + 1
             cols = cols - s0
-        run = JcT[:, s0:s1].t().to(dtype).contiguous()
+        run = JcT[:, s0:s1].t().to(dtype=dtype, memory_format=torch.contiguous_format)     # (one copy)
         return csr_matrix(crow[a:b + 1] - lo, cols, cval[lo:hi].to(dtype), (b - a, s1 - s0)) @ run
 
     def _transposed_gather(self) -> Tensor:
