@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -99,9 +99,11 @@ class _SharingPrior:
         self.anchor_delta = 1.0
         self.nu = 0.0
         self.omega_u = None
+        self._scale = None           # (dp, its columns over the units) of the last linearise
 
     def set_units(self, units: Mapping[str, float]) -> None:
         """Replace the units of the parameters in ``units`` (name → unit)."""
+        self._scale = None
         for i, n in enumerate(self.col_names):
             if n in units:
                 self.thr[i] = float(units[n])
@@ -166,6 +168,7 @@ class _SharingPrior:
         anchor = self.omega_u if self.target is not None and self.nu > 0 else torch.zeros_like(canon[:, :C])
         self.lap = self._laplacian(wp, anchor.expand(canon.shape[0], C))
         scale = self._columns(dp) / self.thr
+        self._scale = (dp, scale)       # (every product of this linearisation scales by it)
         return self._full(g * scale), self._full(deg * scale.square())
 
     def _spread(self, fu: Tensor, fv: Tensor, fb: Tensor, first: float, second: float) -> Tensor:
@@ -199,12 +202,23 @@ class _SharingPrior:
         vals = torch.cat([w, w, -w, -w, diag])
         return [self._pattern.matrix(vals[:, c].contiguous()) for c in range(C)]
 
-    def matvec(self, v: Tensor, dp: Tensor) -> Tensor:
-        """The prior's Gauss-Newton product with ``v [T, P]`` in θ, at the weights of the last :meth:`linearise`."""
-        scale = self._columns(dp) / self.thr
-        u = self._columns(v) * scale
-        acc = torch.stack([torch.mv(lap, u[:, c].contiguous()) for c, lap in enumerate(self.lap)], 1)
-        return self._full(acc * scale)
+    def matvec(self, v: Tensor, dp: Tensor, out: Tensor | None = None) -> Tensor:
+        """The prior's Gauss-Newton product with ``v [T, P]`` in θ, at the weights of the last :meth:`linearise`, into
+        ``out [T, P]`` when given (as :meth:`_Normal.matvec`: no temporary of the size of ``v``)."""
+        scale = self._scale[1] if self._scale is not None and self._scale[0] is dp else self._columns(dp) / self.thr
+        cols = self.cols if not self.every_column else range(self.P)
+        acc = torch.empty(len(self.lap), v.shape[0], dtype=v.dtype, device=v.device)      # [C, T]: a column per row
+        u = torch.empty(v.shape[0], dtype=v.dtype, device=v.device)
+        for c, (col, lap) in enumerate(zip(cols, self.lap, strict=True)):
+            torch.mul(v[:, col], scale[:, c], out=u)
+            torch.mv(lap, u, out=acc[c])
+        if out is None:
+            return self._full(acc.t() * scale)
+        if self.every_column:
+            return torch.mul(acc.t(), scale, out=out)
+        out.zero_()
+        out[:, self.cols] = acc.t() * scale
+        return out
 
 
 #: Trial steps per outer iteration of :func:`refine_joint`, the damping λ growing ×4 after each rejected one
@@ -299,23 +313,28 @@ class _JointData:
         B = (self.S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)             # Σ_s w_sk² J_sᵀWJ_s
         return w, g, B
 
-    def matvec(self, v: Tensor, dp: Tensor, J, w: Tensor) -> Tensor:
-        """The data term's Gauss-Newton product with ``v [T, P]`` in θ."""
+    def matvec(self, v: Tensor, dp: Tensor, J, w: Tensor, out: Tensor | None = None) -> Tensor:
+        """The data term's Gauss-Newton product with ``v [T, P]`` in θ, into ``out [T, P]`` when given."""
         if self.pix is not None:
-            return self.pix.apply_t(J, w * self.pix.apply(J, v * dp)) * dp
+            if out is None:
+                return self.pix.apply_t(J, w * self.pix.apply(J, v * dp)) * dp
+            y = self.pix.apply(J, torch.mul(v, dp, out=out))                # (out holds v·dp until J's product)
+            return self.pix.apply_t(J, y.mul_(w), out=out).mul_(dp)
         # J_sᵀ W_s J_s u_s as two batched products (bmm: 5.4 ms against 9.4 ms for einsum, S = 204 000), a block of
         # samples at a time: the samples' reads and radiance changes whole were 0.13 GB of fresh pages per product
         # on 32 × 512² photos (1.6 M samples); only the result, which the scatter reads whole, is made whole
-        x = v * dp
+        x = v * dp if out is None else torch.mul(v, dp, out=out)      # (out holds v·dp until the scatter)
         S = J.shape[0]
-        out = torch.empty(S, self.P, dtype=J.dtype, device=J.device)
+        per = torch.empty(S, self.P, dtype=J.dtype, device=J.device)
         step = block_size(JACOBIAN_BLOCK, J.device)
         for a in range(0, S, step):
             b = min(a + step, S)
             u = csr_rows(self.S_op, a, b) @ x                                  # [n, P]
             ju = torch.bmm(J[a:b], u[:, :, None])[..., 0] * w[a:b]            # [n, 3]
-            out[a:b] = torch.bmm(ju[:, None, :], J[a:b])[:, 0]
-        return self.scatter(out) * dp
+            per[a:b] = torch.bmm(ju[:, None, :], J[a:b])[:, 0]
+        if out is None:
+            return self.scatter(per) * dp
+        return torch.mm(self.S_t, per, out=out).mul_(dp)
 
 
 def _prior_names(model: Model, layout: Layout, sharing: float, sharing_params: Sequence[str] | None) -> list[str]:
@@ -397,6 +416,7 @@ class _Normal:
     B: Tensor
     diag: Tensor
     live: Tensor
+    scratch: list = field(default_factory=list)     # the products' kept texel-sized arrays (_scratch)
 
     @classmethod
     def of(cls, data: _JointData, prior: _SharingPrior | None, canon: Tensor, dp: Tensor, J, w: Tensor, g: Tensor,
@@ -416,37 +436,57 @@ class _Normal:
         diag = diag + 1e-9 * diag.mean(-1, keepdim=True).clamp_min(1e-30)
         return cls(data, prior, dp, J, w, g, B, diag, live)
 
-    def matvec(self, v: Tensor, lam: float) -> Tensor:
-        """The damped product with ``v [T, P]``; identity on the texels that are not live."""
-        out = self.data.matvec(v, self.dp, self.J, self.w)
+    def matvec(self, v: Tensor, lam: float, out: Tensor | None = None) -> Tensor:
+        """The damped product with ``v [T, P]``, into ``out [T, P]`` when given; identity on the texels that are not
+        live. With ``out`` its texel-sized temporaries are the system's two kept arrays (:meth:`_scratch`), the same
+        values to the last bit."""
+        if out is None:
+            out = torch.empty_like(v)
+        data = self.data.matvec(v, self.dp, self.J, self.w, out=self._scratch(0, v))
         if self.prior is not None:
-            out = out + self.prior.matvec(v, self.dp)
-        return torch.where(self.live[:, None], out + lam * self.diag * v, v)
+            data.add_(self.prior.matvec(v, self.dp, out=self._scratch(1, v)))
+        torch.mul(self.diag, lam, out=out).mul_(v).add_(data)
+        return torch.where(self.live[:, None], out, v, out=out)
+
+    def _scratch(self, i: int, like: Tensor) -> Tensor:
+        """The ``i``-th kept array shaped like ``like``: a fresh texel-sized array over glibc's mmap ceiling (32 MiB:
+        7 parameters of 1024² texels in float64 are 59 MB) is new pages, zeroed by the kernel, at each use — on 1024²
+        maps a PCG iteration's vector work took 230 ms with fresh arrays against 48 ms in kept ones."""
+        while len(self.scratch) <= i:
+            self.scratch.append(None)
+        buf = self.scratch[i]
+        if buf is None or buf.shape != like.shape or buf.dtype != like.dtype or buf.device != like.device:
+            buf = self.scratch[i] = torch.empty_like(like)
+        return buf
 
 
 def _pcg(system: _Normal, lam: float, rhs: Tensor, Minv: Tensor, iterations: int) -> Tensor:
     """Preconditioned conjugate gradients on ``system`` damped by ``lam`` from 0, with the per-texel block inverses
     ``Minv [T, P, P]``: at most ``iterations`` products, stopped early on a non-positive curvature or a residual
     reduced by 1e-20."""
+    # every vector updated in place and every product's temporary in a kept array (:meth:`_Normal._scratch`): fresh
+    # ones over glibc's mmap ceiling are new pages at each use (on 1024² maps 230 against 48 ms of vector work per
+    # iteration), the same values to the last bit
     x = torch.zeros_like(rhs)
     res = rhs.clone()
-    z = torch.bmm(Minv, res[:, :, None])[..., 0]
+    z, Ad, tmp = (torch.empty_like(rhs) for _ in range(3))
+    torch.bmm(Minv, res[:, :, None], out=z[:, :, None])
     d = z.clone()
-    rz = float((res * z).sum())
+    rz = float(torch.mul(res, z, out=tmp).sum())
     rz0 = rz
     for _ in range(iterations):
-        Ad = system.matvec(d, lam)
-        dAd = float((d * Ad).sum())
+        system.matvec(d, lam, out=Ad)
+        dAd = float(torch.mul(d, Ad, out=tmp).sum())
         if not dAd > 0:
             break
         a = rz / dAd
-        x = x + a * d
-        res = res - a * Ad
-        z = torch.bmm(Minv, res[:, :, None])[..., 0]
-        rz_new = float((res * z).sum())
+        x.add_(torch.mul(d, a, out=tmp))
+        res.sub_(torch.mul(Ad, a, out=tmp))
+        torch.bmm(Minv, res[:, :, None], out=z[:, :, None])
+        rz_new = float(torch.mul(res, z, out=tmp).sum())
         if rz_new <= 1e-20 * rz0:
             break
-        d = z + (rz_new / rz) * d
+        d.mul_(rz_new / rz).add_(z)
         rz = rz_new
     return x
 

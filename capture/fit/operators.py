@@ -291,6 +291,7 @@ class PixelOperator:
         self.memory_budget = memory_budget      # bytes the process may hold (None: what the machine has)
         self.jacobian_form = None       # the form used, decided at the first linearisation
         self._gather_t = None           # gather_op's transpose, made for the first product of the samples' form
+        self._scratch_buf = None        # the products' texel-sized conversions (_scratch)
 
     def observed(self) -> Tensor:
         """``[T]`` bool: texels some kept pixel reads with a positive weight."""
@@ -547,7 +548,8 @@ class PixelOperator:
         if isinstance(J, SampleJacobian):
             # block by block of samples: their changes and radiance changes whole were 0.34 GB of fresh pages per
             # product on 32 × 512² photos (5.3 M samples)
-            x = u.to(self.gather_op.dtype)
+            x = u if u.dtype == self.gather_op.dtype else \
+                self._scratch(u.numel(), self.gather_op.dtype, u.device).view(u.shape).copy_(u)
             out = torch.zeros(self.R, 3, dtype=ACC, device=u.device)
             pairs = list(zip(J.cs.tolist(), J.ps.tolist(), strict=True))
             for a, b in self._sample_blocks(u.device):
@@ -557,10 +559,22 @@ class PixelOperator:
                     q[:, c].addcmul_(J.JcT[j, a:b], d[:, p])
                 self._add_to_pixels(out, q, a, b)
             return out.to(u.dtype)
-        return torch.mv(J.A, u.reshape(-1).to(J.A.dtype)).to(u.dtype).reshape(self.R, 3)
+        x = u.reshape(-1)
+        if x.dtype != J.A.dtype:                    # (converted into the kept scratch array, not a fresh one)
+            x = self._scratch(x.numel(), J.A.dtype, x.device).copy_(x)
+        return torch.mv(J.A, x).to(u.dtype).reshape(self.R, 3)
 
-    def apply_t(self, J: PixelJacobian | SampleJacobian, v: Tensor) -> Tensor:
-        """``Jᵀ v`` ``[T, P]`` for pixel values ``v [R, 3]``."""
+    def _scratch(self, n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+        """A ``[n]`` array of ``dtype`` kept for the products' texel-sized conversions (:meth:`apply`,
+        :meth:`apply_t`), each used and done with before the next: an array over glibc's mmap ceiling (32 MiB: 7
+        parameters of 2048² texels in float32 are 117 MB) is fresh pages, zeroed by the kernel, at every product."""
+        buf = self._scratch_buf
+        if buf is None or buf.numel() != n or buf.dtype != dtype or buf.device != device:
+            buf = self._scratch_buf = torch.empty(n, dtype=dtype, device=device)
+        return buf
+
+    def apply_t(self, J: PixelJacobian | SampleJacobian, v: Tensor, out: Tensor | None = None) -> Tensor:
+        """``Jᵀ v`` ``[T, P]`` for pixel values ``v [R, 3]``, into ``out [T, P]`` when given."""
         if isinstance(J, SampleJacobian):
             dt = J.JcT.dtype
             vd = v.to(dt)
@@ -570,8 +584,20 @@ class PixelOperator:
                 vs = vd[self.fp.group[a:b]] * self.fp.share[a:b, None].to(dt)      # [n, 3] each sample's part
                 for j, (c, p) in enumerate(pairs):
                     z[a:b, p].addcmul_(J.JcT[j, a:b], vs[:, c])
-            return (self._transposed_gather() @ z).to(v.dtype)
-        return torch.mv(J.At, v.reshape(-1).to(J.At.dtype)).to(v.dtype).reshape(self.T, -1)
+            if out is None:
+                return (self._transposed_gather() @ z).to(v.dtype)
+            if out.dtype == dt:
+                return torch.mm(self._transposed_gather(), z, out=out)
+            res = self._scratch(out.numel(), dt, out.device).view(out.shape)
+            return out.copy_(torch.mm(self._transposed_gather(), z, out=res))
+        x = v.reshape(-1).to(J.At.dtype)
+        if out is None:
+            return torch.mv(J.At, x).to(v.dtype).reshape(self.T, -1)
+        if out.dtype == J.At.dtype:
+            torch.mv(J.At, x, out=out.view(-1))
+            return out
+        out.view(-1).copy_(torch.mv(J.At, x, out=self._scratch(out.numel(), J.At.dtype, out.device)))
+        return out
 
 
 def check_jacobian_form(jacobian) -> None:

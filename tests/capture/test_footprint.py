@@ -212,6 +212,57 @@ def test_the_two_jacobian_forms_give_the_same_solver_quantities(ggx, model_name)
     assert ops["samples"].affine == (model_name == "lambert") == ops["assembled"].affine
 
 
+@pytest.mark.parametrize("form", ["assembled", "samples", "pixel centres"])
+def test_the_solver_products_in_kept_arrays_are_the_allocating_ones_bit_for_bit(ggx, form):
+    """The joint solve's products written into kept arrays — the data term's (either Jacobian form of the pixel
+    footprints, or the pixel centres), the prior's on some of the columns, the damped sum — and PCG updating its
+    vectors in place give the very values of the allocating expressions they replace."""
+    from capture.fit import joint
+
+    sc, fp, obs, T = ggx
+    model, layout = sc.model, Layout.of(sc.model)
+    n = T * T
+    foot = None if form == "pixel centres" else PixelOperator(fp, n, jacobian=form)
+    data = joint._JointData(model, obs, layout, param_groups(layout), n, sampling="bilinear", footprints=foot,
+                            loss="l2", delta=1.0)
+    gen = torch.Generator().manual_seed(3)
+    theta = torch.randn(n, layout.P, generator=gen, dtype=torch.float64) * 0.5
+    canon, dp = layout.canonical(theta), layout.dcanonical(theta)
+    r, J = data.linearise(canon)
+    w, g, B = data.normal(J, r, dp)
+    observed = joint._observed(data, obs, "bilinear", theta)
+    prior = joint._SharingPrior(layout, ["f0", "roughness"], T, T, observed, 0.3)
+    prior.mu = 1e-3
+    system = joint._Normal.of(data, prior, canon, dp, J, w, g, B)
+    v = torch.randn(n, layout.P, generator=gen, dtype=torch.float64)
+    lam = 0.01
+
+    def product(x):                     # the damped product as the allocating code wrote it
+        out = data.matvec(x, dp, J, w) + prior.matvec(x, dp.clone())         # (a copy: the prior's scale recomputed)
+        return torch.where(system.live[:, None], out + lam * system.diag * x, x)
+
+    assert torch.equal(data.matvec(v, dp, J, w, out=torch.empty_like(v)), data.matvec(v, dp, J, w))
+    assert torch.equal(prior.matvec(v, dp, out=torch.full_like(v, 7.0)), prior.matvec(v, dp.clone()))
+    want = product(v)
+    assert torch.equal(system.matvec(v, lam, out=torch.empty_like(v)), want) and want.abs().max() > 0
+    M = system.B.clone()
+    M.diagonal(dim1=-2, dim2=-1).add_(lam * system.diag)
+    M[~system.live] = torch.eye(layout.P, dtype=torch.float64)
+    Minv = torch.linalg.inv(M)
+    rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))
+    x, res = torch.zeros_like(rhs), rhs.clone()
+    z = torch.bmm(Minv, res[:, :, None])[..., 0]
+    d, rz = z.clone(), float((res * z).sum())
+    for _ in range(8):                  # PCG as the allocating code wrote it
+        Ad = product(d)
+        a = rz / float((d * Ad).sum())
+        x, res = x + a * d, res - a * Ad
+        z = torch.bmm(Minv, res[:, :, None])[..., 0]
+        rz_new = float((res * z).sum())
+        d, rz = z + (rz_new / rz) * d, rz_new
+    assert torch.equal(joint._pcg(system, lam, rhs, Minv, 8), x)
+
+
 def test_auto_keeps_the_jacobian_per_sample_when_memory_is_short(ggx, monkeypatch):
     """``jacobian="auto"`` assembles the matrices unless their E·k non-zeros (16 bytes each) would take more than
     ASSEMBLED_SHARE of the memory available; it decides once, at the first linearisation, and assembles where the

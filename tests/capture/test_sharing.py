@@ -486,8 +486,8 @@ class _Quadratic:
         self.live = torch.ones(T, dtype=torch.bool)
         self.g = 2.0 * (target - theta)
 
-    def matvec(self, v, lam):
-        return 2.0 * v + lam * self.diag * v
+    def matvec(self, v, lam, out):
+        return out.copy_(2.0 * v + lam * self.diag * v)
 
 
 def test_joint_steps_trust_region_grows_when_cut_and_tries_half_a_rejected_step():
