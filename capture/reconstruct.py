@@ -1077,11 +1077,24 @@ def _report_coverage(report: Report, fit: FitResult, seen: _Observed, spt: Tenso
                        "observable_fraction": {k: 1.0 - float(v[observed].float().mean()) if bool(observed.any())
                                                else 0.0 for k, v in fit.unobservable.items()},
                        "sampling": seen.sampling,
-                       "samples_per_observed_texel": float(spt[observed].float().mean()) if bool(observed.any()) else 0}
+                       "samples_per_observed_texel": float(spt[observed].float().mean()) if bool(observed.any()) else 0,
+                       # observed texels the photos do not determine on their own whose fitted values were kept (the
+                       # sharing's materials, or the regularised fit of maps finer than the photos), not filled
+                       "unobservable_kept": {k: int((v & ~fit.filled[k]).sum()) for k, v in fit.unobservable.items()}}
+    # no texel resolved by any pixel: the maps are finer than the photos resolve (through the pixel footprints)
+    too_fine = fit.info.get("resolved_fraction") == 0.0
     for k, v in fit.unobservable.items():
         if bool(observed.any()) and int(v.sum()) == int(observed.sum()):
-            report.warnings.append(f"parameter '{k}' is unobservable in every observed texel (e.g. no highlight "
-                                   f"seen anywhere): its map is filled with defaults, not measured")
+            cause = ("no pixel takes enough of any texel to determine it: the maps are finer than the photos resolve"
+                     if too_fine else "e.g. no highlight seen anywhere")
+            if report.coverage["unobservable_kept"][k]:
+                report.warnings.append(
+                    f"parameter '{k}' is unobservable in every observed texel ({cause}): its map holds the fit's "
+                    f"regularised values, which the photos constrain only together with the neighbouring texels and "
+                    f"the prior — not measured texel by texel (confidence_{k}.exr says how loosely)")
+            else:
+                report.warnings.append(f"parameter '{k}' is unobservable in every observed texel ({cause}): its map "
+                                       f"is filled with defaults, not measured")
     if "roughness" in fit.raw:
         frac, med = unresolved_roughness(seen.obs, fit.raw["roughness"], observed & ~fit.unobservable["roughness"])
         report.coverage["roughness_unresolved_fraction"] = frac
@@ -1356,7 +1369,10 @@ def _error_table(r: Report) -> list[str]:
                        else "n/a")
         rows.append(row)
         if v.get("texels") and not o.get("texels"):
-            unmeasured.append(f"{k}: not measured — no texel is observable (its map is filled, not measured)")
+            unmeasured.append(
+                f"{k}: not measured texel by texel — no texel is observable on its own (its map holds the fit's "
+                f"regularised values)" if r.coverage.get("unobservable_kept", {}).get(k) else
+                f"{k}: not measured — no texel is observable (its map is filled, not measured)")
     widths = [max(len(x[c]) for x in [head, *rows]) for c in range(len(head))]
     fmt = lambda row: "  " + "  ".join(x.ljust(w) for x, w in zip(row, widths, strict=True)).rstrip()  # noqa: E731
     key = ("  columns: observed texels / observable texels = on all observed texels / on texels where the map is "

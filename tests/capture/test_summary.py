@@ -44,6 +44,51 @@ def test_summary_error_table_words_and_advice():
     assert "advice: none" in _summary(r)
 
 
+def test_a_map_without_an_observable_texel_is_named_filled_or_regularised_as_it_was_written():
+    r = _report()
+    r.coverage["unobservable_kept"] = {"albedo": 0, "roughness": 100}
+    text = _summary(r)
+    assert "  roughness: not measured texel by texel — no texel is observable on its own (its map holds the fit's " \
+           "regularised values)" in text and "filled" not in text
+    r.coverage["unobservable_kept"]["roughness"] = 0
+    assert "  roughness: not measured — no texel is observable (its map is filled, not measured)" in _summary(r)
+
+
+def _coverage_warnings(kept: bool, resolved_fraction: float | None) -> list[str]:
+    """The warnings of ``_report_coverage`` for a Lambert fit whose albedo is unobservable in all 4 of its observed
+    texels (of 6), its values kept or filled."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from capture.fit.layout import FitResult
+    from capture.reconstruct import _report_coverage
+
+    observed = torch.tensor([[True, True, False], [True, True, False]])
+    unobservable = {"albedo": observed.clone()}
+    filled = {"albedo": ~observed if kept else torch.ones_like(observed)}
+    info = {} if resolved_fraction is None else {"resolved_fraction": resolved_fraction}
+    fit = FitResult(maps={}, observed=observed, unobservable=unobservable, filled=filled, confidence={},
+                    sensitivity={}, history=[], iterations=0, time_s=0.0, solver="fast", info=info, raw={})
+    rep = Report(model="lambert", solver="fast", out_dir="o")
+    _report_coverage(rep, fit, SimpleNamespace(sampling="footprint", obs=None), torch.ones(2, 3))
+    assert rep.coverage["unobservable_kept"] == {"albedo": 4 if kept else 0}
+    return rep.warnings
+
+
+def test_the_coverage_warning_says_whether_an_unobservable_map_was_kept_or_filled_and_why():
+    # kept (maps finer than the photos, fitted coarse to fine: the regularised solution), no texel resolved
+    (w,) = _coverage_warnings(True, 0.0)
+    assert w.startswith("parameter 'albedo' is unobservable in every observed texel (no pixel takes enough of any "
+                        "texel to determine it: the maps are finer than the photos resolve): its map holds the fit's "
+                        "regularised values") and "filled" not in w and "confidence_albedo.exr" in w
+    (w,) = _coverage_warnings(False, 0.3)               # filled: the per-texel fit's values were arbitrary
+    assert w == ("parameter 'albedo' is unobservable in every observed texel (e.g. no highlight seen anywhere): its "
+                 "map is filled with defaults, not measured")
+    (w,) = _coverage_warnings(True, None)               # kept without pixel footprints: the sharing's materials
+    assert "(e.g. no highlight seen anywhere): its map holds the fit's regularised values" in w
+
+
 def test_summary_names_the_solver_options_that_differ_from_the_defaults():
     from capture.fit.options import FitOptions
 
