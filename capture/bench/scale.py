@@ -45,7 +45,9 @@ reconstructed by `shadecap reconstruct --model ggx-lambert` in a process of its 
 `report.json` is the reconstruction's alone. Stage times come from the report; "observed pixels" are the footprint
 fit's kept pixels; the RMSE is on the well-lit texels. Below each table: growth exponents against observed pixels
 (1 = linear) and the marginal memory per observed pixel (the slope of peak memory against pixels, without the fixed
-cost of the interpreter, torch and the mesh). Plot: `docs/figures/scale.png`. Regenerate:
+cost of the interpreter, torch and the mesh), and against texels where the same photos were fitted on several map
+sizes. Plot: `docs/figures/scale.png` (above: against observed pixels, maps the size of the images; below: against
+texels, the same photos on finer maps). Regenerate:
 `python scripts/benchmark.py scale --devices cpu --threads 2 --rows-json rows.json` on each machine (with
 `--devices cuda` where a GPU is), then `python scripts/benchmark.py scale --configs none --earlier ROWS.json ...
 --out docs/benchmarks.md --figure docs/figures/scale.png`; the rows shown are kept in `docs/data/scale-*.json`.
@@ -172,9 +174,9 @@ def _machine_table(rows: list[dict]) -> list[str]:
 
 
 def scale_figure(rows: list[dict], path) -> None:
-    """Time and peak memory against observed pixels (log–log), one line per machine and device, over the rows whose
-    maps are the size of their images (a texture sweep has one pixel count: its exponent is in the table)."""
-    rows = [r for r in rows if r["tex"] == r["image"]]
+    """Time and peak memory (log–log), one line per machine and device: above, against observed pixels over the rows
+    whose maps are the size of their images; below, against texels over each texture sweep (rows of one views ×
+    image with several map sizes: the same photos fitted on finer maps)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -182,30 +184,61 @@ def scale_figure(rows: list[dict], path) -> None:
 
     from ..plots import save_figure
 
-    series = list(dict.fromkeys((r["machine"], r["device"]) for r in rows))
+    pixel_rows = [r for r in rows if r["tex"] == r["image"]]
+    sweeps = [k for k in dict.fromkeys((r["machine"], r["device"], r["views"], r["image"]) for r in rows)
+              if len({r["tex"] for r in rows if (r["machine"], r["device"], r["views"], r["image"]) == k}) >= 2]
+    series = list(dict.fromkeys([(r["machine"], r["device"]) for r in pixel_rows] + [k[:2] for k in sweeps]))
     legend_h = 0.2 * (len(series) + 1)                  # inches below the plots for one legend line per series
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.0 + legend_h))
+    height = 4.0 * (2 if sweeps else 1)
+    fig, axes = plt.subplots(2 if sweeps else 1, 2, figsize=(11, height + legend_h), squeeze=False)
     colours = plt.get_cmap("tab10").colors
-    for i, (machine, dev) in enumerate(series):
-        rs = sorted((r for r in rows if r["device"] == dev and r["machine"] == machine), key=lambda r: r["pixels"])
-        px = [r["pixels"] for r in rs]
-        cores = next((p.strip() for p in machine.split(",") if "cores" in p), machine)
+
+    def label(machine: str, dev: str, upto_colon: bool) -> str:
+        head = machine.split(" — ", 1)[0]
+        cores = next((p.strip() for p in head.split(",") if "cores" in p), head)
         # the code the rows ran, as the table's caption names it (up to a colon, at most ~60 characters)
-        code = machine.split(" — ", 1)[1].split(":")[0].strip() if " — " in machine else ""
+        code = machine.split(" — ", 1)[1] if " — " in machine else ""
+        code = code.split(":")[0].strip() if upto_colon else code.strip()
         if len(code) > 60:
             code = code[:60].rsplit(" ", 1)[0] + " …"
-        name = f"{dev}, {cores}" + (f" — {code}" if code else "")
+        return f"{dev}, {cores}" + (f" — {code}" if code else "")
+
+    short = [label(m, d, True) for m, d in series]
+    for i, (machine, dev) in enumerate(series):
+        # two earlier runs of one code (the caption up to its colon) are told apart by what follows it
+        name = short[i] if short.count(short[i]) == 1 else label(machine, dev, False)
         c = colours[i % len(colours)]
-        axes[0].plot(px, [r["times"]["total"] for r in rs], "o-", color=c, label=name)
-        axes[0].plot(px, [r["times"].get("solve", 0.0) for r in rs], "s--", color=c)
-        axes[1].plot(px, [r["peak_rss_bytes"] / 2 ** 30 for r in rs], "o-", color=c)
-    axes[0].set(xscale="log", yscale="log", xlabel="observed pixels", ylabel="seconds",
-                title="time (solid: total, dashed: the solve)")
-    axes[1].set(xscale="log", yscale="log", xlabel="observed pixels", ylabel="GiB", title="peak resident memory")
-    for ax in axes:
+        axes[0, 0].plot([], [], "o-", color=c, label=name)
+        rs = sorted((r for r in pixel_rows if (r["machine"], r["device"]) == (machine, dev)), key=lambda r: r["pixels"])
+        px = [r["pixels"] for r in rs]
+        axes[0, 0].plot(px, [r["times"]["total"] for r in rs], "o-", color=c)
+        axes[0, 0].plot(px, [r["times"].get("solve", 0.0) for r in rs], "s--", color=c)
+        axes[0, 1].plot(px, [r["peak_rss_bytes"] / 2 ** 30 for r in rs], "o-", color=c)
+        for key in sweeps:
+            if key[:2] != (machine, dev):
+                continue
+            ts = sorted((r for r in rows if (r["machine"], r["device"], r["views"], r["image"]) == key),
+                        key=lambda r: r["tex"])
+            tex = [r["tex"] ** 2 for r in ts]
+            axes[1, 0].plot(tex, [r["times"]["total"] for r in ts], "o-", color=c)
+            axes[1, 0].plot(tex, [r["times"].get("solve", 0.0) for r in ts], "s--", color=c)
+            axes[1, 1].plot(tex, [r["peak_rss_bytes"] / 2 ** 30 for r in ts], "o-", color=c)
+            for ax, y in ((axes[1, 0], ts[-1]["times"]["total"]), (axes[1, 1], ts[-1]["peak_rss_bytes"] / 2 ** 30)):
+                ax.annotate(f"{key[2]} × {key[3]}²", (tex[-1], y), textcoords="offset points", xytext=(4, 0),
+                            fontsize=7, color=c, va="center")
+    axes[0, 0].set(xscale="log", yscale="log", xlabel="observed pixels (maps the size of the images)",
+                   ylabel="seconds", title="time (solid: total, dashed: the solve)")
+    axes[0, 1].set(xscale="log", yscale="log", xlabel="observed pixels (maps the size of the images)", ylabel="GiB",
+                   title="peak resident memory")
+    if sweeps:
+        axes[1, 0].set(xscale="log", yscale="log", xlabel="texels (the same photos on finer maps)", ylabel="seconds",
+                       title="time against the map size (solid: total, dashed: the solve)")
+        axes[1, 1].set(xscale="log", yscale="log", xlabel="texels (the same photos on finer maps)", ylabel="GiB",
+                       title="peak resident memory against the map size")
+    for ax in axes.flat:
         ax.grid(True, which="both", alpha=0.3)
     fig.legend(loc="lower center", ncol=1, fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, legend_h / (4.0 + legend_h), 1, 1))
+    fig.tight_layout(rect=(0, legend_h / (height + legend_h), 1, 1))
     save_figure(fig, path)
     plt.close(fig)
 

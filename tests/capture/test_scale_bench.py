@@ -35,6 +35,30 @@ def test_a_texture_sweep_gets_its_own_exponent_and_stays_out_of_the_pixel_fit():
     assert "∝ pixels^" not in text                   # one pixel count among the rows whose maps match the images
 
 
+def test_the_figure_plots_a_texture_sweep_against_texels_below_the_pixel_sweep(monkeypatch, tmp_path):
+    import capture.plots
+    from capture.bench.scale import scale_figure
+
+    figures = []
+    monkeypatch.setattr(capture.plots, "save_figure", lambda fig, path: figures.append(fig))
+    pixels = [_row("Box, 2 cores — earlier code: fast", "cpu", px, 1e-5 * px, 1e9) for px in (1e5, 4e5)]
+    sweep = [{**_row("Box, 2 cores — earlier code: maps", "cpu", 1e5, t, 1e9), "tex": tex}
+             for tex, t in ((256, 10.0), (1024, 40.0))]
+    scale_figure(pixels + sweep, tmp_path / "f.png")
+    axes = figures[0].axes
+    assert len(axes) == 4
+    lines = [ln for ln in axes[2].get_lines() if len(ln.get_xdata())]
+    assert [list(ln.get_xdata()) for ln in lines] == [[256 ** 2, 1024 ** 2]] * 2        # total and the solve
+    assert list(lines[0].get_ydata()) == [10.0, 40.0]
+    # the two series' captions differ only after their colon: the legend names both whole
+    texts = [t.get_text() for t in figures[0].legends[0].get_texts()]
+    assert texts == ["cpu, 2 cores — earlier code: fast", "cpu, 2 cores — earlier code: maps"]
+    figures.clear()
+    scale_figure(pixels, tmp_path / "f.png")                    # no texture sweep: the pixel panels alone
+    assert len(figures[0].axes) == 2 and [t.get_text() for t in figures[0].legends[0].get_texts()] == \
+        ["cpu, 2 cores — earlier code"]
+
+
 @pytest.mark.parametrize("bad", [0, -1, 2.5, True, "8"])
 def test_bad_sizes_are_refused_before_any_work(bad, tmp_path):
     with pytest.raises(ScaleError, match="positive integer"):
