@@ -166,6 +166,7 @@ class _SharingPrior:
         C = du.shape[-1]
         wp = torch.cat([wu.expand(*du.shape).reshape(-1, C), wv.expand(*dv.shape).reshape(-1, C), wb.expand(*db.shape)])
         anchor = self.omega_u if self.target is not None and self.nu > 0 else torch.zeros_like(canon[:, :C])
+        self.lap = None                 # (the last linearisation's matrices freed before the new ones are made)
         self.lap = self._laplacian(wp, anchor.expand(canon.shape[0], C))
         scale = self._columns(dp) / self.thr
         self._scale = (dp, scale)       # (every product of this linearisation scales by it)
@@ -199,8 +200,9 @@ class _SharingPrior:
             d = torch.arange(T, device=diag.device)
             self._pattern = CsrPattern.of(torch.cat([i, j, i, j, d]), torch.cat([i, j, j, i, d]), (T, T))
         w = wp[self._edge]
-        vals = torch.cat([w, w, -w, -w, diag])
-        return [self._pattern.matrix(vals[:, c].contiguous()) for c in range(C)]
+        # each column's values made on their own: all columns' at once, [pairs, C] in float64, were 1.2 GB beside the
+        # matrices on 2048² maps
+        return [self._pattern.matrix(torch.cat([w[:, c], w[:, c], -w[:, c], -w[:, c], diag[:, c]])) for c in range(C)]
 
     def matvec(self, v: Tensor, dp: Tensor, out: Tensor | None = None) -> Tensor:
         """The prior's Gauss-Newton product with ``v [T, P]`` in θ, at the weights of the last :meth:`linearise`, into
@@ -244,6 +246,9 @@ TRUST_MAX = 3.0
 #: shortens the steps beyond that; the floor keeps a long streak from leaving the next steps a box too small to
 #: regrow from in a few steps (×2 per cut step).
 TRUST_MIN = 1.0 / 64
+#: Texels per run of :func:`_damped_step`'s block inverses: 2¹⁶ × 7 × 7 float64 are 25 MB of damped copy at a time,
+#: which stays in the allocator's reuse instead of new pages.
+INVERSE_BLOCK = 1 << 16
 
 
 class _JointData:
@@ -504,14 +509,19 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
     # up to JOINT_ATTEMPTS damping increases (×4 each) before the step is given up: after a failed outer
     # iteration the loop stops, so 4 attempts (λ ≤ 0.064) ended the refinement before its first step on the
     # small fixed-rig scene
+    T = system.B.shape[0]
+    Minv = torch.empty_like(system.B)
+    step = block_size(INVERSE_BLOCK, theta.device)
     for _attempt in range(JOINT_ATTEMPTS):
-        # the damped blocks made in one copy of the system's, in place (diag_embed and where made two more, 0.2 GB on
-        # 512² maps), and freed once inverted: during the solve the inverse is the only other [T, P, P] array
-        M = system.B.clone()
-        M.diagonal(dim1=-2, dim2=-1).add_(lam * system.diag)
-        M[~system.live] = eye
-        Minv, _ = torch.linalg.inv_ex(M)
-        del M
+        # the damped blocks made and inverted a run of texels at a time (each block's inverse is its own, so the
+        # values are those of one batched inverse): whole, the damped copy was one more [T, P, P] array beside the
+        # system's and the inverse (1.6 GB on 2048² maps), new pages at every trial
+        for a in range(0, T, step):
+            b = min(a + step, T)
+            M = system.B[a:b].clone()
+            M.diagonal(dim1=-2, dim2=-1).add_(lam * system.diag[a:b])
+            M[~system.live[a:b]] = eye
+            Minv[a:b] = torch.linalg.inv_ex(M)[0]
         rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))
         x = _pcg(system, lam, rhs, Minv, cg_iterations)
         cut = bool((x.abs() > radius).any())
