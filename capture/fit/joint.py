@@ -16,7 +16,7 @@ from materials.params import CANONICAL
 from renderer.device import block_size
 
 from ..observations import Observations
-from .layout import ACC, MAX_STEP, Layout, SolverError
+from .layout import ACC, INVERSE_BLOCK, MAX_STEP, Layout, SolverError
 from .noise import NOISE, irls_weights, noise_sigma, photo_noise_ratio, robust_rho
 from .observability import std_threshold
 from .operators import CsrPattern, csr_rows, pixel_operator, sampling_operator
@@ -246,9 +246,6 @@ TRUST_MAX = 3.0
 #: shortens the steps beyond that; the floor keeps a long streak from leaving the next steps a box too small to
 #: regrow from in a few steps (×2 per cut step).
 TRUST_MIN = 1.0 / 64
-#: Texels per run of :func:`_damped_step`'s block inverses: 2¹⁶ × 7 × 7 float64 are 25 MB of damped copy at a time,
-#: which stays in the allocator's reuse instead of new pages.
-INVERSE_BLOCK = 1 << 16
 
 
 class _JointData:

@@ -18,8 +18,8 @@ from torch import Tensor
 from materials.model import Model
 from materials.params import ParamSpec
 
-__all__ = ["ACC", "MAX_STEP", "SolverError", "Layout", "FitResult", "bounded", "to_canonical", "from_canonical",
-           "dcanonical", "param_groups"]
+__all__ = ["ACC", "MAX_STEP", "INVERSE_BLOCK", "SolverError", "Layout", "FitResult", "bounded", "to_canonical",
+           "from_canonical", "dcanonical", "param_groups"]
 
 
 _EPS_BOUND = 1e-6
@@ -27,6 +27,10 @@ _EPS_BOUND = 1e-6
 ACC = torch.float64
 #: Largest LM step per iteration and θ component (logit/softplus units), see solve_fast.
 MAX_STEP = 1.0
+#: Texels per run when per-texel ``[P, P]`` blocks are damped and inverted (the joint solves' preconditioner, the
+#: posterior's covariances): 2¹⁶ × 7 × 7 float64 are 25 MB of temporaries at a time, which stay in the allocator's
+#: reuse, where whole copies were one or more ``[T, P, P]`` arrays of new pages (1.6 GB each on 2048² maps).
+INVERSE_BLOCK = 1 << 16
 
 
 class SolverError(ValueError):

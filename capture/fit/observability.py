@@ -21,9 +21,10 @@ from torch import Tensor
 from materials.atlas import pull_push  # the one pull-push fill; re-exported by capture.fit
 from materials.model import Model
 from materials.params import CANONICAL, ParamSpec
+from renderer.device import block_size
 
 from ..observations import Observations
-from .layout import ACC, FitResult, Layout, SolverError
+from .layout import ACC, INVERSE_BLOCK, FitResult, Layout, SolverError
 from .noise import NOISE, check_noise, irls_weights, moderated_misfit, noise_sigma, photo_noise_ratio
 from .operators import pixel_operator, sampling_operator
 from .texel import jacobian
@@ -129,12 +130,22 @@ def _posterior_tail(A: Tensor, chi: Tensor, nres: Tensor, obs: Observations, noi
     with torch.no_grad():
         observed = nres > 0
         eye = torch.eye(P, dtype=ACC, device=device)
-        dmax = torch.diagonal(A, dim1=-2, dim2=-1).amax(-1).clamp_min(1e-30)
-        A = A + (1e-12 * dmax)[:, None, None] * eye
-        A = torch.where(observed[:, None, None], A, eye)
-        cov, info = torch.linalg.inv_ex(A)
-        var = torch.diagonal(cov, dim1=-2, dim2=-1)
-        bad = (info != 0)[:, None] | ~torch.isfinite(var) | (var < 0)
+        T = A.shape[0]
+        var = torch.empty(T, P, dtype=ACC, device=device)
+        singular = torch.empty(T, dtype=torch.bool, device=device)
+        # a run of texels at a time (each block's inverse is its own): whole, the ridged blocks, their selection and
+        # the covariances were three more [T, P, P] arrays (4.9 GB on 2048² maps), of which only the diagonal is kept
+        step = block_size(INVERSE_BLOCK, device)
+        for a in range(0, T, step):
+            b = min(a + step, T)
+            Ab = A[a:b]
+            dmax = torch.diagonal(Ab, dim1=-2, dim2=-1).amax(-1).clamp_min(1e-30)
+            Ab = Ab + (1e-12 * dmax)[:, None, None] * eye
+            Ab = torch.where(observed[a:b, None, None], Ab, eye)
+            cov, info = torch.linalg.inv_ex(Ab)
+            var[a:b] = torch.diagonal(cov, dim1=-2, dim2=-1)
+            singular[a:b] = info != 0
+        bad = singular[:, None] | ~torch.isfinite(var) | (var < 0)
         var = torch.where(bad, torch.full_like(var, 1e12), var)
         s2 = torch.maximum((chi / (nres - P).clamp_min(1)).clamp_min(1.0),
                            moderated_misfit(chi, nres - P, photo_noise_ratio(obs, noise)))

@@ -263,6 +263,48 @@ def test_the_solver_products_in_kept_arrays_are_the_allocating_ones_bit_for_bit(
     assert torch.equal(joint._pcg(system, lam, rhs, Minv, 8), x)
 
 
+def test_block_inverses_by_runs_of_texels_are_the_whole_batch_bit_for_bit(ggx, monkeypatch):
+    """The posterior's covariances and the joint step's preconditioner, inverted a run of texels at a time
+    (``INVERSE_BLOCK``), are those of one batched inverse: the same std (unobserved, singular and ordinary texels)
+    and the same step, to the last bit."""
+    from capture.fit import joint, observability
+    from capture.fit.layout import INVERSE_BLOCK
+
+    _, _, obs, _ = ggx
+    gen = torch.Generator().manual_seed(7)
+    T, P = 50, 7
+    X = torch.randn(T, P, P, generator=gen, dtype=torch.float64)
+    A = X @ X.transpose(1, 2)
+    A[3] = 0.0                                           # a singular block
+    chi = torch.rand(T, generator=gen, dtype=torch.float64) * 40
+    nres = torch.randint(0, 30, (T,), generator=gen).to(torch.float64)
+    nres[:5] = 0.0                                       # unobserved texels
+    whole = observability._posterior_tail(A, chi, nres, obs, (0.01, 0.1), P, A.device)
+    monkeypatch.setattr(observability, "INVERSE_BLOCK", 8)
+    runs = observability._posterior_tail(A, chi, nres, obs, (0.01, 0.1), P, A.device)
+    assert INVERSE_BLOCK > T and all(torch.equal(a, b) for a, b in zip(whole, runs, strict=True))
+    assert torch.isinf(runs[0][:5]).all() and bool(torch.isfinite(runs[0][5:]).all())
+
+    class Quadratic:                                     # a damped system whose blocks differ per texel
+        B, diag = A + 0.1 * torch.eye(P, dtype=torch.float64), torch.rand(T, P, generator=gen, dtype=torch.float64)
+        live = nres > 0
+        g = torch.randn(T, P, generator=gen, dtype=torch.float64)
+
+        def matvec(self, v, lam, out):
+            return out.copy_(torch.where(self.live[:, None], (self.B @ v[:, :, None])[..., 0]
+                                         + lam * self.diag * v, v))
+
+    def step():
+        theta = torch.zeros(T, P, dtype=torch.float64)
+        return joint._damped_step(Quadratic(), theta, 1e9, 0.01, 3.0, lambda th: float(th.square().sum()), 10, [])
+
+    monkeypatch.setattr(joint, "INVERSE_BLOCK", INVERSE_BLOCK)
+    theta_whole = step()[0]
+    monkeypatch.setattr(joint, "INVERSE_BLOCK", 8)
+    theta_runs = step()[0]
+    assert torch.equal(theta_whole, theta_runs) and theta_runs.abs().max() > 0
+
+
 def test_auto_keeps_the_jacobian_per_sample_when_memory_is_short(ggx, monkeypatch):
     """``jacobian="auto"`` assembles the matrices unless their E·k non-zeros (16 bytes each) would take more than
     ASSEMBLED_SHARE of the memory available; it decides once, at the first linearisation, and assembles where the
