@@ -507,9 +507,9 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
     # iteration the loop stops, so 4 attempts (λ ≤ 0.064) ended the refinement before its first step on the
     # small fixed-rig scene
     T = system.B.shape[0]
-    Minv = torch.empty_like(system.B)
     step = block_size(INVERSE_BLOCK, theta.device)
     for _attempt in range(JOINT_ATTEMPTS):
+        Minv = torch.empty_like(system.B)
         # the damped blocks made and inverted a run of texels at a time (each block's inverse is its own, so the
         # values are those of one batched inverse): whole, the damped copy was one more [T, P, P] array beside the
         # system's and the inverse (1.6 GB on 2048² maps), new pages at every trial
@@ -521,6 +521,7 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
             Minv[a:b] = torch.linalg.inv_ex(M)[0]
         rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))
         x = _pcg(system, lam, rhs, Minv, cg_iterations)
+        Minv = None                     # (not held while the trials are priced: the prior's energy needs the room)
         cut = bool((x.abs() > radius).any())
         for r in (radius, radius / 2):
             trial = theta + x.clamp(-r, r)
