@@ -13,7 +13,7 @@ from torch import Tensor
 
 from materials.model import Model
 from materials.params import CANONICAL
-from renderer.device import block_size
+from renderer.device import block_size, kept_array
 
 from ..observations import Observations
 from .layout import ACC, INVERSE_BLOCK, MAX_STEP, Layout, SolverError
@@ -100,6 +100,7 @@ class _SharingPrior:
         self.nu = 0.0
         self.omega_u = None
         self._scale = None           # (dp, its columns over the units) of the last linearise
+        self._kept = {}              # matvec's kept working arrays
 
     def set_units(self, units: Mapping[str, float]) -> None:
         """Replace the units of the parameters in ``units`` (name → unit)."""
@@ -208,10 +209,10 @@ class _SharingPrior:
         """The prior's Gauss-Newton product with ``v [T, P]`` in θ, at the weights of the last :meth:`linearise`, into
         ``out [T, P]`` when given (as :meth:`_Normal.matvec`: no temporary of the size of ``v``)."""
         scale = self._scale[1] if self._scale is not None and self._scale[0] is dp else self._columns(dp) / self.thr
-        cols = self.cols if not self.every_column else range(self.P)
-        acc = torch.empty(len(self.lap), v.shape[0], dtype=v.dtype, device=v.device)      # [C, T]: a column per row
-        u = torch.empty(v.shape[0], dtype=v.dtype, device=v.device)
-        for c, (col, lap) in enumerate(zip(cols, self.lap, strict=True)):
+        T = v.shape[0]
+        acc = kept_array(self._kept, "acc", (len(self.lap), T), v.dtype, v.device)       # [C, T]: a column per row
+        u = kept_array(self._kept, "u", (T,), v.dtype, v.device)
+        for c, (col, lap) in enumerate(zip(self.cols, self.lap, strict=True)):
             torch.mul(v[:, col], scale[:, c], out=u)
             torch.mv(lap, u, out=acc[c])
         if out is None:
@@ -264,6 +265,7 @@ class _JointData:
         self.model, self.obs, self.layout, self.groups, self.loss, self.delta = model, obs, layout, groups, loss, delta
         self.T, self.P = T, layout.P
         self.pix = pixel_operator(footprints, T) if footprints is not None else None
+        self._kept = {}                 # matvec's kept per-sample array
         self.y = self.pix.y if self.pix is not None else obs.radiance.to(ACC)
         self.n_res = float(3 * self.pix.R) if self.pix is not None else float(3 * obs.weight.to(ACC).sum())
         # the sampling operator as sparse CSR matrices (K non-zeros per row): per-sample values are
@@ -327,7 +329,7 @@ class _JointData:
         # on 32 × 512² photos (1.6 M samples); only the result, which the scatter reads whole, is made whole
         x = v * dp if out is None else torch.mul(v, dp, out=out)      # (out holds v·dp until the scatter)
         S = J.shape[0]
-        per = torch.empty(S, self.P, dtype=J.dtype, device=J.device)
+        per = kept_array(self._kept, "per", (S, self.P), J.dtype, J.device)
         step = block_size(JACOBIAN_BLOCK, J.device)
         for a in range(0, S, step):
             b = min(a + step, S)
@@ -418,7 +420,7 @@ class _Normal:
     B: Tensor
     diag: Tensor
     live: Tensor
-    scratch: list = field(default_factory=list)     # the products' kept texel-sized arrays (_scratch)
+    kept: dict = field(default_factory=dict)        # the products' kept texel-sized arrays (matvec)
 
     @classmethod
     def of(cls, data: _JointData, prior: _SharingPrior | None, canon: Tensor, dp: Tensor, J, w: Tensor, g: Tensor,
@@ -440,35 +442,24 @@ class _Normal:
 
     def matvec(self, v: Tensor, lam: float, out: Tensor | None = None) -> Tensor:
         """The damped product with ``v [T, P]``, into ``out [T, P]`` when given; identity on the texels that are not
-        live. With ``out`` its texel-sized temporaries are the system's two kept arrays (:meth:`_scratch`), the same
-        values to the last bit."""
+        live. With ``out`` its texel-sized temporaries are the system's two kept arrays
+        (:func:`renderer.device.kept_array`), the same values to the last bit."""
         if out is None:
             out = torch.empty_like(v)
-        data = self.data.matvec(v, self.dp, self.J, self.w, out=self._scratch(0, v))
+        data = self.data.matvec(v, self.dp, self.J, self.w, out=kept_array(self.kept, "data", v.shape, v.dtype,
+                                                                            v.device))
         if self.prior is not None:
-            data.add_(self.prior.matvec(v, self.dp, out=self._scratch(1, v)))
+            data.add_(self.prior.matvec(v, self.dp, out=kept_array(self.kept, "prior", v.shape, v.dtype, v.device)))
         torch.mul(self.diag, lam, out=out).mul_(v).add_(data)
         return torch.where(self.live[:, None], out, v, out=out)
-
-    def _scratch(self, i: int, like: Tensor) -> Tensor:
-        """The ``i``-th kept array shaped like ``like``: a fresh texel-sized array over glibc's mmap ceiling (32 MiB:
-        7 parameters of 1024² texels in float64 are 59 MB) is new pages, zeroed by the kernel, at each use — on 1024²
-        maps a PCG iteration's vector work took 230 ms with fresh arrays against 48 ms in kept ones."""
-        while len(self.scratch) <= i:
-            self.scratch.append(None)
-        buf = self.scratch[i]
-        if buf is None or buf.shape != like.shape or buf.dtype != like.dtype or buf.device != like.device:
-            buf = self.scratch[i] = torch.empty_like(like)
-        return buf
 
 
 def _pcg(system: _Normal, lam: float, rhs: Tensor, Minv: Tensor, iterations: int) -> Tensor:
     """Preconditioned conjugate gradients on ``system`` damped by ``lam`` from 0, with the per-texel block inverses
     ``Minv [T, P, P]``: at most ``iterations`` products, stopped early on a non-positive curvature or a residual
     reduced by 1e-20."""
-    # every vector updated in place and every product's temporary in a kept array (:meth:`_Normal._scratch`): fresh
-    # ones over glibc's mmap ceiling are new pages at each use (on 1024² maps 230 against 48 ms of vector work per
-    # iteration), the same values to the last bit
+    # every vector updated in place and every product's temporary in a kept array (:func:`renderer.device.kept_array`:
+    # fresh ones over glibc's mmap ceiling are new pages at each use), the same values to the last bit
     x = torch.zeros_like(rhs)
     res = rhs.clone()
     z, Ad, tmp = (torch.empty_like(rhs) for _ in range(3))
@@ -508,6 +499,7 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
     # small fixed-rig scene
     T = system.B.shape[0]
     step = block_size(INVERSE_BLOCK, theta.device)
+    rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))      # (the same for every trial)
     for _attempt in range(JOINT_ATTEMPTS):
         Minv = torch.empty_like(system.B)
         # the damped blocks made and inverted a run of texels at a time (each block's inverse is its own, so the
@@ -519,7 +511,6 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
             M.diagonal(dim1=-2, dim2=-1).add_(lam * system.diag[a:b])
             M[~system.live[a:b]] = eye
             Minv[a:b] = torch.linalg.inv_ex(M)[0]
-        rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))
         x = _pcg(system, lam, rhs, Minv, cg_iterations)
         Minv = None                     # (not held while the trials are priced: the prior's energy needs the room)
         cut = bool((x.abs() > radius).any())

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from materials.model import Model
-from renderer.device import block_size, memory_headroom
+from renderer.device import block_size, kept_array, memory_headroom
 
 from .layout import ACC, Layout, SolverError
 from .texel import JACOBIAN_BLOCK, jacobian_blocks
@@ -291,7 +291,7 @@ class PixelOperator:
         self.memory_budget = memory_budget      # bytes the process may hold (None: what the machine has)
         self.jacobian_form = None       # the form used, decided at the first linearisation
         self._gather_t = None           # gather_op's transpose, made for the first product of the samples' form
-        self._scratch_buf = None        # the products' texel-sized conversions (_scratch)
+        self._kept = {}                 # the products' texel-sized conversions (_scratch)
 
     def observed(self) -> Tensor:
         """``[T]`` bool: texels some kept pixel reads with a positive weight."""
@@ -566,12 +566,8 @@ class PixelOperator:
 
     def _scratch(self, n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
         """A ``[n]`` array of ``dtype`` kept for the products' texel-sized conversions (:meth:`apply`,
-        :meth:`apply_t`), each used and done with before the next: an array over glibc's mmap ceiling (32 MiB: 7
-        parameters of 2048² texels in float32 are 117 MB) is fresh pages, zeroed by the kernel, at every product."""
-        buf = self._scratch_buf
-        if buf is None or buf.numel() != n or buf.dtype != dtype or buf.device != device:
-            buf = self._scratch_buf = torch.empty(n, dtype=dtype, device=device)
-        return buf
+        :meth:`apply_t`), each used and done with before the next (:func:`renderer.device.kept_array`)."""
+        return kept_array(self._kept, "scratch", (n,), dtype, device)
 
     def apply_t(self, J: PixelJacobian | SampleJacobian, v: Tensor, out: Tensor | None = None) -> Tensor:
         """``Jᵀ v`` ``[T, P]`` for pixel values ``v [R, 3]``, into ``out [T, P]`` when given."""

@@ -210,3 +210,15 @@ def test_cgroup_headroom_is_the_tightest_limit_less_usage_plus_reclaimable_cache
     assert device.available_memory("cpu") == 700
     monkeypatch.setattr(device, "cgroup_memory_headroom", lambda: None)
     assert device.available_memory("cpu") == 10_000
+
+
+def test_kept_array_is_reused_until_its_kind_changes():
+    from renderer.device import kept_array
+
+    store = {}
+    a = kept_array(store, "x", (3, 4), torch.float64, "cpu")
+    assert a.shape == (3, 4) and a.dtype == torch.float64 and kept_array(store, "x", [3, 4], torch.float64, "cpu") is a
+    assert kept_array(store, "y", (3, 4), torch.float64, "cpu") is not a             # another key, another array
+    b = kept_array(store, "x", (4, 3), torch.float64, "cpu")
+    assert b is not a and store["x"] is b
+    assert kept_array(store, "x", (4, 3), torch.float32, "cpu").dtype == torch.float32
