@@ -160,6 +160,33 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-15 * float(a.abs().max()))
 
 
+def test_placing_parts_as_rows_is_placing_value_by_value(monkeypatch):
+    """Where every part is the same number of consecutive columns (GGX + Lambert's channels: 3 pairs each), values
+    are placed and read back as rows of that width; the places are the value-by-value ones, with groups of 0 to 5
+    positions and blocks that end inside groups. Parts of unequal size (the parameters) or columns not grouped by
+    part keep the value-by-value places."""
+    import capture.fit.operators as ops
+    from capture.fit.operators import _Placement
+
+    monkeypatch.setattr(ops, "PLACE_BLOCK", 7)
+    gen = torch.Generator().manual_seed(7)
+    n_g = torch.randint(0, 6, (40,), generator=gen)
+    crow = torch.cat([torch.zeros(1, dtype=torch.long), n_g.cumsum(0)])
+    group = torch.repeat_interleave(torch.arange(40), n_g)
+    E = int(crow[-1])
+    rows = _Placement.of(crow, group, None, torch.tensor([0, 0, 0, 1, 1, 1, 2, 2, 2]), 3)
+    flat = rows._replace(width=0)
+    assert rows.width == 3
+    V = torch.randn(E, 9, generator=gen, dtype=torch.float64)
+    placed = [pl.scatter(lambda a, b: V[a:b], torch.full((E * 9,), float("nan"), dtype=torch.float64))
+              for pl in (rows, flat)]
+    assert torch.equal(placed[0], placed[1]) and not placed[0].isnan().any()
+    pos = torch.randperm(E, generator=gen)[:E // 2]
+    assert torch.equal(rows.take(placed[0], pos), V[pos]) and torch.equal(flat.take(placed[0], pos), V[pos])
+    assert _Placement.of(crow, group, None, torch.tensor([0, 3, 6, 1, 4, 6, 2, 5, 6]), 7).width == 0
+    assert _Placement.of(crow, group, None, torch.tensor([0, 1, 0, 1]), 2).width == 0
+
+
 def test_assembled_values_are_summed_in_float64_from_the_float32_samples(ggx, monkeypatch):
     """The samples' Jacobian is held in float32 (the model's precision), and the assembled form sums the entries'
     values from it in float64 over the run of samples each block of entries reads: exactly ``corner_op · Jcᵀ`` in
