@@ -302,13 +302,13 @@ def texture_footprints(mesh, camera, g, k: Tensor, kt: Tensor, map_size: tuple[i
     ``g`` holds the rays of :func:`renderer.gbuffer.render_footprint`; ``k [N]``, ``kt [N]`` are the ray count and
     texture count of each ray's pixel. A ray's stratum (side ``extent / k`` pixels) is read at ``m × m`` texture
     sub-samples, ``m = ceil(kt / k)``, at the centres of a regular grid over it, each located on the plane of the
-    face the ray hit (:func:`renderer.gbuffer.face_uv`) and read bilinearly; over the pixel they form the
+    face the ray hit (:func:`renderer.gbuffer.face_planes`) and read bilinearly; over the pixel they form the
     ``(k·m)²`` midpoint grid of the filter's square, weighted by the pixel filter (uniform for the box).
 
     Returns ``(share [N], taps)``: the ray's share of its pixel (the filter weights of its sub-samples, summing to 1
     over the pixel) and its distinct texels with weights summing to 1 (:class:`capture.observations.TexelTaps`, one
     row per ray)."""
-    from renderer.gbuffer import face_uv
+    from renderer.gbuffer import face_planes
     from renderer.texture import bilinear_weights
 
     H, W = map_size
@@ -338,9 +338,8 @@ def texture_footprints(mesh, camera, g, k: Tensor, kt: Tensor, map_size: tuple[i
         else:
             sub_xy = torch.stack([off[ix][:, None, :].expand(-1, mm, -1), off[iy][:, :, None].expand(-1, -1, mm)],
                                  -1).reshape(len(sel), -1, 2) + centre[sel][:, None]
-            uv, ok = face_uv(mesh, camera, g.face[sel].repeat_interleave(mm * mm), sub_xy.reshape(-1, 2))
-            uv = torch.where(ok[:, None], uv, g.uv[sel].to(torch.float64).repeat_interleave(mm * mm, 0))
-            uv = uv.reshape(len(sel), mm * mm, 2)
+            uv, ok = face_planes(mesh, camera, g.face[sel]).uv(sub_xy)                  # [n_sel, m², 2]
+            uv = torch.where(ok[..., None], uv, g.uv[sel].to(torch.float64)[:, None])
         bi, bw = bilinear_weights(uv, H, W)                                           # [n_sel, m², 4]
         s_ray = wsub.sum(-1)
         share[sel] = s_ray

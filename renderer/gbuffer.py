@@ -26,6 +26,7 @@ N = 0 and :attr:`GBuffer.coverage` 0 — the caller decides whether that is an e
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -34,8 +35,8 @@ from torch import Tensor
 from .camera import Camera, check_supersample
 from .mesh import Mesh
 
-__all__ = ["GBuffer", "render_gbuffer", "render_footprint", "face_uv", "intersect", "intersect_faces", "pixel_filter",
-           "footprint_extent", "check_psf_sigma", "PSF_SUPPORT", "PSF_MAX_SIGMA"]
+__all__ = ["GBuffer", "render_gbuffer", "render_footprint", "face_uv", "face_planes", "FacePlanes", "intersect",
+           "intersect_faces", "pixel_filter", "footprint_extent", "check_psf_sigma", "PSF_SUPPORT", "PSF_MAX_SIGMA"]
 
 
 @dataclass
@@ -193,9 +194,66 @@ def intersect(mesh: Mesh, origins: np.ndarray, directions: np.ndarray) -> dict[s
             "geo_normal": gn * sign, "uv": uv, "view": view, "backface": back}
 
 
+class FacePlanes(NamedTuple):
+    """Faces' planes seen from a pinhole camera, for :meth:`uv`, which gives the texture coordinates where the rays
+    through image positions meet them (:func:`face_planes`). Per face, float64: ``to_plane`` = a − o (its first
+    vertex from the camera centre), ``normal`` its unit normal, ``uv_map [N, 2, 3]`` its affine UV map's linear part
+    (uv = ``uv_first`` + uv_map · (x − a) for x on the plane), ``uv_first [N, 2]``; ``pixel_to_ray [3, 3]`` maps (x,
+    y, 1) to the camera's (unnormalised) ray direction, Rᵀ K⁻¹."""
+
+    to_plane: Tensor
+    normal: Tensor
+    uv_map: Tensor
+    uv_first: Tensor
+    pixel_to_ray: Tensor
+
+    def uv(self, xy: Tensor) -> tuple[Tensor, Tensor]:
+        """``(uv [N, ..., 2], ok [N, ...])`` at image positions ``xy [N, ..., 2]`` (face i's positions in row i; the
+        middle dimensions, e.g. several sub-samples of a face, broadcast). For ray direction w, the plane is met at
+        x = o + t·w, t = ((a − o)·n) / (w·n); uv = uv_first + uv_map · (x − a). ``ok`` and the fallback as
+        :func:`face_uv`."""
+        lead = (len(self.normal),) + (1,) * (xy.dim() - 2)
+        w = torch.cat([xy.to(torch.float64), torch.ones_like(xy[..., :1], dtype=torch.float64)], -1) \
+            @ self.pixel_to_ray.T
+        n, a_o = self.normal.view(*lead, 3), self.to_plane.view(*lead, 3)
+        den = (w * n).sum(-1)
+        s = (a_o * n).sum(-1)
+        crossing = den.abs() > 1e-12 * w.norm(dim=-1)                  # the ray is not parallel to the plane
+        t = s / torch.where(crossing, den, torch.ones_like(den))
+        ok = crossing & (t > 0)
+        q = t[..., None] * w - a_o                                      # x − a
+        uv = self.uv_first.view(*lead, 2) + (self.uv_map.view(*lead, 2, 3) @ q[..., None]).squeeze(-1)
+        return torch.where(ok[..., None], uv, self.uv_first.view(*lead, 2)), ok
+
+
+def face_planes(mesh: Mesh, camera: Camera, face: Tensor) -> FacePlanes:
+    """The planes of the faces ``face [N]`` as seen from ``camera``, whose :meth:`FacePlanes.uv` gives texture
+    coordinates at image positions: what :func:`face_uv` computes, with the per-face quantities made once for any
+    number of positions per face (a pixel's texture sub-samples all lie on its ray's face)."""
+    _check_inputs(mesh, camera, "face_planes")
+    if not isinstance(face, Tensor) or face.dim() != 1:
+        raise ValueError(f"face_planes: face must be [N] face indices, got {tuple(getattr(face, 'shape', ()))}")
+    f = mesh.faces.long()[face]
+    V = torch.from_numpy(np.asarray(mesh.tm.vertices, dtype=np.float64))      # the arrays intersect() reads
+    UV = torch.from_numpy(mesh._uvs64())
+    a, b, c = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
+    e0, e1 = b - a, c - a
+    n = torch.linalg.cross(e0, e1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    # barycentric β, γ of a point x of the plane: (x − a)·(d11 e0 − d01 e1) / det, (x − a)·(d00 e1 − d01 e0) / det
+    d00, d01, d11 = (e0 * e0).sum(-1), (e0 * e1).sum(-1), (e1 * e1).sum(-1)
+    det = (d00 * d11 - d01 * d01).clamp_min(1e-300)[:, None]
+    beta = (d11[:, None] * e0 - d01[:, None] * e1) / det
+    gamma = (d00[:, None] * e1 - d01[:, None] * e0) / det
+    ua, ub, uc = UV[f[:, 0]], UV[f[:, 1]], UV[f[:, 2]]
+    uv_map = (ub - ua)[:, :, None] * beta[:, None, :] + (uc - ua)[:, :, None] * gamma[:, None, :]
+    to_ray = camera.R.to(torch.float64).T @ torch.linalg.inv(camera.K.to(torch.float64))
+    return FacePlanes(a - camera.center.to(torch.float64), n, uv_map, ua, to_ray)
+
+
 def face_uv(mesh: Mesh, camera: Camera, face: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
     """Texture coordinates where the rays through image positions ``xy [M, 2]`` meet the planes of the faces
-    ``face [M]``, without casting them: ``(uv [M, 2], ok [M])`` in float64.
+    ``face [M]``, without casting them: ``(uv [M, 2], ok [M])`` in float64 (:func:`face_planes`).
 
     Exact where the ray hits the face itself; beyond its edges it is the face's affine UV map continued over its
     plane, which differs from the neighbouring face's UVs by the surface's bend across the edge (second order in
@@ -208,27 +266,7 @@ def face_uv(mesh: Mesh, camera: Camera, face: Tensor, xy: Tensor) -> tuple[Tenso
     if not isinstance(face, Tensor) or face.dim() != 1 or not isinstance(xy, Tensor) or xy.shape != (len(face), 2):
         raise ValueError(f"face_uv: face must be [M] face indices and xy [M, 2] image positions, got "
                          f"{tuple(getattr(face, 'shape', ()))} and {tuple(getattr(xy, 'shape', ()))}")
-    o, d = camera.rays_at(xy, dtype=torch.float64)
-    f = mesh.faces.long()[face]
-    V = torch.from_numpy(np.asarray(mesh.tm.vertices, dtype=np.float64))      # the arrays intersect() reads
-    UV = torch.from_numpy(mesh._uvs64())
-    a, b, c = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
-    e0, e1 = b - a, c - a
-    n = torch.linalg.cross(e0, e1)
-    den = (d * n).sum(-1)
-    crossing = den.abs() > 1e-12 * n.norm(dim=-1)                  # the ray is not parallel to the plane
-    t = ((a - o) * n).sum(-1) / torch.where(crossing, den, torch.ones_like(den))
-    ok = crossing & (t > 0)
-    q = o + t[:, None] * d - a
-    d00, d01, d11 = (e0 * e0).sum(-1), (e0 * e1).sum(-1), (e1 * e1).sum(-1)
-    d20, d21 = (q * e0).sum(-1), (q * e1).sum(-1)
-    det = (d00 * d11 - d01 * d01).clamp_min(1e-300)
-    beta = (d11 * d20 - d01 * d21) / det
-    gamma = (d00 * d21 - d01 * d20) / det
-    ua, ub, uc = UV[f[:, 0]], UV[f[:, 1]], UV[f[:, 2]]
-    uv = ua + beta[:, None] * (ub - ua) + gamma[:, None] * (uc - ua)
-    uv = torch.where(ok[:, None], uv, ua)
-    return uv, ok
+    return face_planes(mesh, camera, face).uv(xy)
 
 
 def _check_pixels(pixels, camera: Camera, where: str) -> Tensor:

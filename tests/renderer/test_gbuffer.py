@@ -203,3 +203,26 @@ def test_face_uv_is_the_cast_rays_uv_inside_the_face_and_its_plane_beyond():
     assert float(((uv[ray][other] - cast_uv[other]).norm(dim=-1)).median()) < 0.05 * float(step.median())
     with pytest.raises(ValueError, match="face must be"):
         face_uv(mesh, cam, g.face, xy[:3])
+
+
+def test_face_planes_read_many_positions_per_face_as_face_uv_reads_each():
+    """A face's plane made once and read at L positions per face (the texture sub-samples of a pixel, [N, L, 2])
+    gives each position's face_uv, including the flag of rays that miss the plane's front (positions far outside
+    the image, behind the horizon of a grazing face)."""
+    from renderer.gbuffer import face_planes, face_uv
+
+    mesh = uv_sphere()
+    cam = look_at((0.0, -3.0, 1.0), (0.0, 0.0, 0.0), fov_y_deg=40, width=48, height=48)
+    g = render_gbuffer(mesh, cam, 1)
+    xy, _ = cam.project(g.position.double())
+    gen = torch.Generator().manual_seed(1)
+    L = 5
+    sub = xy[:, None] + (torch.rand(len(g), L, 2, generator=gen, dtype=torch.float64) - 0.5) * 2.0
+    sub[::7, 0] += 1e4                                           # far off: some of these rays miss the plane
+    uv, ok = face_planes(mesh, cam, g.face).uv(sub)
+    assert uv.shape == (len(g), L, 2) and ok.shape == (len(g), L)
+    ref_uv, ref_ok = face_uv(mesh, cam, g.face.repeat_interleave(L), sub.reshape(-1, 2))
+    assert torch.equal(ok.reshape(-1), ref_ok) and 0 < int((~ok).sum()) < ok.numel() // 7
+    assert torch.allclose(uv.reshape(-1, 2), ref_uv, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="face must be"):
+        face_planes(mesh, cam, g.face[:, None])
