@@ -212,7 +212,11 @@ class FacePlanes(NamedTuple):
         middle dimensions, e.g. several sub-samples of a face, broadcast). For ray direction w, the plane is met at
         x = o + t·w, t = ((a − o)·n) / (w·n); uv = uv_first + uv_map · (x − a). ``ok`` and the fallback as
         :func:`face_uv`."""
-        lead = (len(self.normal),) + (1,) * (xy.dim() - 2)
+        N = len(self.normal)
+        if not isinstance(xy, Tensor) or xy.dim() < 2 or xy.shape[0] != N or xy.shape[-1] != 2:
+            raise ValueError(f"FacePlanes.uv: xy must be [{N}, ..., 2] image positions, one row per face, got "
+                             f"{tuple(getattr(xy, 'shape', ()))}")
+        lead = (N,) + (1,) * (xy.dim() - 2)
         w = torch.cat([xy.to(torch.float64), torch.ones_like(xy[..., :1], dtype=torch.float64)], -1) \
             @ self.pixel_to_ray.T
         n, a_o = self.normal.view(*lead, 3), self.to_plane.view(*lead, 3)

@@ -226,3 +226,5 @@ def test_face_planes_read_many_positions_per_face_as_face_uv_reads_each():
     assert torch.allclose(uv.reshape(-1, 2), ref_uv, rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="face must be"):
         face_planes(mesh, cam, g.face[:, None])
+    with pytest.raises(ValueError, match="one row per face"):
+        face_planes(mesh, cam, g.face).uv(sub[:-1])
