@@ -19,7 +19,7 @@ from ..observations import Observations
 from .layout import ACC, INVERSE_BLOCK, MAX_STEP, Layout, SolverError
 from .noise import NOISE, irls_weights, noise_sigma, photo_noise_ratio, robust_rho
 from .observability import std_threshold
-from .operators import CsrPattern, csr_rows, pixel_operator, sampling_operator
+from .operators import CsrPattern, csr_rows, pixel_operator, sampled_blocks, sampling_operator
 from .sharing import shared_default
 from .texel import JACOBIAN_BLOCK, jacobian, weighted_cost
 
@@ -274,7 +274,7 @@ class _JointData:
         # and K index_adds
         if self.pix is None:
             self.S_op, self.S_t = sampling_operator(idx, bw, T)
-            self.S_sq_t = sampling_operator(idx, bw.square(), T, forward=False)[1]
+            self.idx, self.bw_sq = idx, bw.square()          # the normal equations' blocks (sampled_blocks)
 
     def gather(self, x: Tensor) -> Tensor:
         """``[T, P]`` → per-sample ``[S, P]``."""
@@ -310,11 +310,10 @@ class _JointData:
             w = irls_weights(r, self.loss, self.delta)                                       # [R, 3]
             g, B = self.pix.normal(J, w, w * r)                                        # exact per-texel blocks
             return w, g * dp, B
-        T, P = self.T, self.P
+        T = self.T
         w = self.obs.weight.to(ACC)[:, None] * irls_weights(r, self.loss, self.delta)      # [S, 3]
         g = self.scatter(torch.einsum("scp,sc->sp", J, w * r)) * dp                  # JᵀWr in θ
-        JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)
-        B = (self.S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)             # Σ_s w_sk² J_sᵀWJ_s
+        B = sampled_blocks(J, w, self.idx, self.bw_sq, T)                     # Σ_s w_sk² J_sᵀWJ_s
         return w, g, B
 
     def matvec(self, v: Tensor, dp: Tensor, J, w: Tensor, out: Tensor | None = None) -> Tensor:

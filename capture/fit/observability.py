@@ -26,7 +26,7 @@ from renderer.device import block_size
 from ..observations import Observations
 from .layout import ACC, INVERSE_BLOCK, FitResult, Layout, SolverError
 from .noise import NOISE, check_noise, irls_weights, moderated_misfit, noise_sigma, photo_noise_ratio
-from .operators import pixel_operator, sampling_operator
+from .operators import pixel_operator, sampled_blocks, sampled_sum
 from .texel import jacobian
 
 __all__ = ["OBSERVABLE_STD", "RESOLVED_SHARE", "ANCHOR_MIN_FRACTION", "ANCHOR_LOOSENING", "SEED_BLOCK",
@@ -99,27 +99,22 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
             return _posterior_tail(A, chi, nres, obs, noise, P, y.device) + (pred,)
         if sampling == "bilinear":
             idx, bw = obs.bilinear_index, obs.bilinear_weight.to(ACC)
-            per = (canon[idx] * bw[..., None]).sum(-2)
+            per = canon[idx[:, 0]] * bw[:, :1]                  # (a corner at a time: [S, 4, P] whole was 0.36 GB
+            for k in range(1, idx.shape[1]):                    # on 1.6 M pixel centres)
+                per.addcmul_(canon[idx[:, k]], bw[:, k:k + 1])
         else:
-            idx, bw = obs.texel[:, None], torch.ones(obs.n_samples, 1, dtype=ACC, device=obs.device)
+            idx, bw = obs.texel[:, None], None
             per = canon[obs.texel]
         pred, J = jacobian(model, layout, obs, per, groups, canonical=True)
+        per = None
         y = obs.radiance.to(ACC)
         r = y - pred
         w = obs.weight.to(ACC)[:, None] * irls_weights(r, loss, delta) / noise_sigma(y, noise).square()   # [S, 3]
-        JWJ = torch.einsum("scp,sc,scq->spq", J, w, J)                                # [S, P, P]
         chi_s = (w * r * r).sum(-1)
         per_sample = torch.stack([chi_s, 3.0 * (obs.weight.to(ACC) > 0)], -1)         # [S, 2]
-        if idx.shape[1] == 1:
-            A = torch.zeros(T, P, P, dtype=ACC, device=y.device).index_add_(0, idx[:, 0], JWJ)
-            chi, nres = torch.zeros(T, 2, dtype=ACC, device=y.device).index_add_(0, idx[:, 0], per_sample).unbind(-1)
-        else:
-            # the footprint's transposed sampling operators (as in refine_joint): Σ_s w_sk² J_sᵀWJ_s per texel,
-            # and the weight-shared χ² and residual counts
-            S_t = sampling_operator(idx, bw, T, forward=False)[1]
-            S_sq_t = sampling_operator(idx, bw.square(), T, forward=False)[1]
-            A = (S_sq_t @ JWJ.reshape(-1, P * P)).reshape(T, P, P)
-            chi, nres = (S_t @ per_sample).unbind(-1)
+        # Σ_s w_sk² J_sᵀWJ_s per texel, and the weight-shared χ² and residual counts (as in refine_joint)
+        A = sampled_blocks(J, w, idx, None if bw is None else bw.square(), T)
+        chi, nres = sampled_sum(per_sample, idx, bw, T).unbind(-1)
     return _posterior_tail(A, chi, nres, obs, noise, P, y.device) + (pred,)
 
 

@@ -16,7 +16,8 @@ from renderer.device import block_size, kept_array, memory_headroom
 from .layout import ACC, Layout, SolverError
 from .texel import JACOBIAN_BLOCK, jacobian_blocks
 
-__all__ = ["CsrPattern", "csr_matrix", "csr_rows", "sampling_operator", "PixelJacobian", "SampleJacobian",
+__all__ = ["CsrPattern", "csr_matrix", "csr_rows", "sampling_operator", "sampled_sum",
+           "sampled_blocks", "PixelJacobian", "SampleJacobian",
            "PixelOperator", "pixel_operator", "AFFINE_TOL", "NORMAL_BLOCK", "JACOBIAN_FORMS", "ASSEMBLED_SHARE",
            "check_jacobian_form", "check_memory_budget"]
 
@@ -183,6 +184,47 @@ def sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True)
     cols, vals = idx.reshape(-1), weight.reshape(-1)
     fwd = _csr(rows, cols, vals, (S, T)) if forward else None
     return fwd, _csr(cols, rows, vals, (T, S))
+
+
+def sampled_sum(values: Tensor, idx: Tensor, weight: Tensor | None, T: int) -> Tensor:
+    """``[T, …]``: each sample's ``values [S, …]`` added to the texels it reads, ``idx [S, K]``, times its weight
+    there (``weight [S, K]``; None: 1) — the transposed sampling operator's product without the operator, a block of
+    samples and one texel slot at a time (:data:`NORMAL_BLOCK` samples: the weighted copy of a block stays in the
+    allocator's reuse)."""
+    S, K = idx.shape
+    if values.shape[0] != S or (weight is not None and tuple(weight.shape) != (S, K)):
+        raise SolverError(f"sampled_sum: {values.shape[0]} samples' values for texels {tuple(idx.shape)} and weights "
+                          f"{None if weight is None else tuple(weight.shape)}; give one row of each per sample")
+    flat = values.reshape(S, -1)
+    out = torch.zeros(T, flat.shape[1], dtype=values.dtype, device=values.device)
+    step = block_size(NORMAL_BLOCK, values.device)
+    for a in range(0, S, step):
+        b = min(a + step, S)
+        for k in range(K):
+            part = flat[a:b] if weight is None else flat[a:b] * weight[a:b, k, None].to(values.dtype)
+            out.index_add_(0, idx[a:b, k], part)
+    return out.reshape(T, *values.shape[1:])
+
+
+def sampled_blocks(J: Tensor, w: Tensor, idx: Tensor, weight: Tensor | None, T: int) -> Tensor:
+    """Per-texel Gauss-Newton blocks ``[T, P, P]``: ``Σ_s Σ_k weight_sk J_sᵀ diag(w_s) J_s`` over the samples
+    ``s`` that read texel ``t = idx[s, k]`` (``J [S, C, P]``, ``w [S, C]``, ``idx``, ``weight [S, K]``; None: 1).
+    Made a block of samples at a time (:data:`NORMAL_BLOCK`): the products of all samples at once were an
+    ``[S, P, P]`` array (0.63 GB on the 1.6 M pixel centres of 32 × 512² photos, 5.1 GB on 16 × 2048²), and the
+    transposed sampling operator that summed them one more ``[K·S]`` matrix."""
+    S, C, P = J.shape
+    if tuple(w.shape) != (S, C):
+        raise SolverError(f"sampled_blocks: weights {tuple(w.shape)} for a Jacobian {tuple(J.shape)}; give "
+                          f"[S, C] weights")
+    out = torch.zeros(T, P * P, dtype=J.dtype, device=J.device)
+    step = block_size(NORMAL_BLOCK, J.device)
+    for a in range(0, S, step):
+        b = min(a + step, S)
+        Jb = J[a:b]
+        JWJ = torch.bmm((Jb * w[a:b, :, None].to(J.dtype)).transpose(1, 2), Jb).reshape(b - a, P * P)
+        for k in range(idx.shape[1]):
+            out.index_add_(0, idx[a:b, k], JWJ if weight is None else JWJ * weight[a:b, k, None].to(J.dtype))
+    return out.reshape(T, P, P)
 
 
 class CsrPattern(NamedTuple):

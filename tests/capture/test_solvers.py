@@ -295,6 +295,42 @@ def test_sampling_operator_matches_gather_and_scatter():
     torch.testing.assert_close(bwd @ y, ref, rtol=0, atol=1e-13)
 
 
+def test_sampled_blocks_and_sums_match_each_sample_added_alone(monkeypatch):
+    # the per-texel Gauss-Newton blocks and sums of the pixel-centre stages, made a block of samples at a time,
+    # against every (sample, texel slot) added on its own in float64; blocks of 7 samples so that the block
+    # boundaries fall inside the data, a repeated texel inside one sample's footprint
+    from capture.fit import operators
+    from capture.fit.layout import SolverError
+
+    monkeypatch.setattr(operators, "NORMAL_BLOCK", 7)
+    g = torch.Generator().manual_seed(3)
+    S, T, K, C, P = 40, 9, 4, 3, 5
+    idx = torch.randint(T, (S, K), generator=g)
+    idx[5] = 2
+    weight = torch.rand(S, K, generator=g, dtype=torch.float64)
+    J = torch.randn(S, C, P, generator=g, dtype=torch.float64)
+    w = torch.rand(S, C, generator=g, dtype=torch.float64)
+    v = torch.randn(S, 2, generator=g, dtype=torch.float64)
+    blocks = torch.zeros(T, P, P, dtype=torch.float64)
+    sums = torch.zeros(T, 2, dtype=torch.float64)
+    for s in range(S):
+        for k in range(K):
+            t = int(idx[s, k])
+            blocks[t] += weight[s, k] * (J[s].T @ torch.diag(w[s]) @ J[s])
+            sums[t] += weight[s, k] * v[s]
+    torch.testing.assert_close(operators.sampled_blocks(J, w, idx, weight, T), blocks, rtol=1e-13, atol=1e-13)
+    torch.testing.assert_close(operators.sampled_sum(v, idx, weight, T), sums, rtol=1e-13, atol=1e-13)
+    unweighted = torch.zeros(T, P, P, dtype=torch.float64)
+    for s in range(S):
+        unweighted[int(idx[s, 0])] += J[s].T @ torch.diag(w[s]) @ J[s]
+    torch.testing.assert_close(operators.sampled_blocks(J, w, idx[:, :1], None, T), unweighted, rtol=1e-13,
+                               atol=1e-13)
+    with pytest.raises(SolverError, match="weights"):
+        operators.sampled_blocks(J, w[:, :2], idx, weight, T)
+    with pytest.raises(SolverError, match="one row of each per sample"):
+        operators.sampled_sum(v[:-1], idx, weight, T)
+
+
 @pytest.mark.parametrize("name", [n for n in materials.available() if n != "measured"])
 @pytest.mark.parametrize("canonical", [False, True])
 def test_jacobian_matches_central_differences_in_float64(name, canonical):
