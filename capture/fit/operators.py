@@ -216,6 +216,9 @@ def sampled_blocks(J: Tensor, w: Tensor, idx: Tensor, weight: Tensor | None, T: 
     if tuple(w.shape) != (S, C):
         raise SolverError(f"sampled_blocks: weights {tuple(w.shape)} for a Jacobian {tuple(J.shape)}; give "
                           f"[S, C] weights")
+    if idx.shape[0] != S or (weight is not None and tuple(weight.shape) != tuple(idx.shape)):
+        raise SolverError(f"sampled_blocks: texels {tuple(idx.shape)} and slot weights "
+                          f"{None if weight is None else tuple(weight.shape)} for {S} samples; give [S, K] of both")
     out = torch.zeros(T, P * P, dtype=J.dtype, device=J.device)
     step = block_size(NORMAL_BLOCK, J.device)
     for a in range(0, S, step):

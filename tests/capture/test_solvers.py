@@ -327,6 +327,8 @@ def test_sampled_blocks_and_sums_match_each_sample_added_alone(monkeypatch):
                                atol=1e-13)
     with pytest.raises(SolverError, match="weights"):
         operators.sampled_blocks(J, w[:, :2], idx, weight, T)
+    with pytest.raises(SolverError, match="give \\[S, K\\] of both"):
+        operators.sampled_blocks(J, w, idx[:-1], weight[:-1], T)
     with pytest.raises(SolverError, match="one row of each per sample"):
         operators.sampled_sum(v[:-1], idx, weight, T)
 
