@@ -425,9 +425,16 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         kk[pixels] = k * k
         ff = torch.zeros(HW, dtype=torch.float64)
         ff[pixels] = f
-        return part, kk, ff, cast, uniform, partial, sub
+        # the image-space noise residual at the view's kept pixels, in pixel order (the order of its rows among the
+        # grouped pixels below), made here in the view's thread rather than view after view once they are joined
+        kept = torch.unique(part.columns["pixel"])
+        valid = torch.zeros(HW, dtype=torch.bool)
+        valid[kept] = True
+        photo = torch.nan_to_num(photos[vi].to(part.columns["radiance"].dtype), nan=0.0, posinf=0.0, neginf=0.0)
+        noise = noise_residual(photo, valid.reshape(g.height, g.width)).reshape(-1, 3)[kept]
+        return part, kk, ff, noise, cast, uniform, partial, sub
 
-    parts, counts, fps, *tallies = zip(*per_view(one, n), strict=True)
+    parts, counts, fps, noises, *tallies = zip(*per_view(one, n), strict=True)
     cast, uniform, partial, sub = (sum(t) for t in tallies)
     samples = extractor.observations(list(parts), lights=lights, bilinear=True)
     del parts
@@ -444,16 +451,13 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         if (HWmax := max(len(c) for c in counts)) else torch.zeros(0, dtype=torch.long)
     foot_r = torch.stack([torch.nn.functional.pad(c, (0, HWmax - len(c))) for c in fps])[view, pixel]
     share = samples.weight                       # observe_views carries the G-buffer weight 1/k² for footprints
-    dt = samples.radiance.dtype
-    noise = torch.full((R, 3), float("nan"), dtype=dt)
-    for vi in range(n):
-        h, w = samples.image_size[vi]
-        valid = torch.zeros(h * w, dtype=torch.bool)
-        sel = view == vi
-        valid[pixel[sel]] = True
-        res = noise_residual(torch.nan_to_num(photos[vi].to(dt), nan=0.0, posinf=0.0, neginf=0.0),
-                             valid.reshape(h, w))
-        noise[sel] = res.reshape(-1, 3)[pixel[sel]]
+    # the grouped pixels are in (view, pixel) order, so each view's rows are its kept pixels in pixel order
+    noise = torch.cat(noises)
+    del noises
+    if noise.shape[0] != R:
+        raise ObservationError(f"observe_footprints: the views measured the noise at {noise.shape[0]} kept pixels but "
+                               f"their samples group into {R}; the views' samples were joined out of step (a bug: "
+                               f"please report it with the dataset)")
     drops = {f"samples_{k}": v for k, v in samples.drops.items() if k != "background"}
     drops["partial_pixels"] = max(partial, 0)
     samples.weight = torch.ones_like(share)

@@ -573,3 +573,25 @@ def test_footprints_do_not_depend_on_the_thread_count():
         assert torch.equal(getattr(a.samples, name), getattr(b.samples, name)), name
     assert torch.equal(a.samples.taps.index, b.samples.taps.index)
     assert torch.equal(a.samples.taps.weight, b.samples.taps.weight)
+
+
+def test_each_pixels_noise_residual_is_read_from_its_own_view_and_pixel(ggx):
+    # the view threads measure the noise residual at their kept pixels; joined, row r must be the residual of the
+    # photo of view[r] at pixel[r] with every kept pixel of that view valid — computed here from the photos directly
+    from capture.observations import noise_residual
+
+    _, fp, _, _ = ggx
+    cfg = small_scene("ggx-lambert", image_size=64, texture_size=64, n_views=3)
+    photos, _ = render_scene(build_scene(cfg), cfg)
+    assert len(set(fp.view.tolist())) == 3
+    for vi, photo in enumerate(photos):
+        rows = (fp.view == vi).nonzero()[:, 0]
+        h, w = photo.shape[:2]
+        valid = torch.zeros(h * w, dtype=torch.bool)
+        valid[fp.pixel[rows]] = True
+        ref = noise_residual(torch.nan_to_num(photo.to(fp.radiance.dtype)), valid.reshape(h, w)).reshape(-1, 3)
+        got = fp.noise_residual[rows]
+        want = ref[fp.pixel[rows]]
+        assert torch.equal(torch.isnan(got), torch.isnan(want))
+        assert bool(torch.isfinite(got).any())
+        torch.testing.assert_close(torch.nan_to_num(got), torch.nan_to_num(want), rtol=0, atol=0)
