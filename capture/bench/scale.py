@@ -191,7 +191,8 @@ def scale_figure(rows: list[dict], path) -> None:
     legend_h = 0.2 * (len(series) + 1)                  # inches below the plots for one legend line per series
     height = 4.0 * (2 if sweeps else 1)
     fig, axes = plt.subplots(2 if sweeps else 1, 2, figsize=(11, height + legend_h), squeeze=False)
-    colours = plt.get_cmap("tab10").colors
+    # one colour per series: tab10's where they fit, tab20's twenty beyond (tab10 repeated its colours from the 11th)
+    colours = plt.get_cmap("tab10" if len(series) <= 10 else "tab20").colors
 
     def label(machine: str, dev: str, upto_colon: bool) -> str:
         head = machine.split(" — ", 1)[0]
