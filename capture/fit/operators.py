@@ -186,32 +186,41 @@ def sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True)
     return fwd, _csr(cols, rows, vals, (T, S))
 
 
+def _add_sampled(out: Tensor, values: Tensor, idx: Tensor, weight: Tensor | None) -> None:
+    """``out [T, D]`` += each of the samples' ``values [n, D]`` at its texels ``idx [n, K]`` times ``weight [n, K]``
+    (None: 1), the (sample, slot) terms in the transposed sampling operator's order — sample by sample, slot by slot
+    — added by one ``index_add_``, so that the sums are the operator's product's bit for bit."""
+    n, K = idx.shape
+    terms = values[:, None].expand(n, K, values.shape[1]) if weight is None \
+        else values[:, None] * weight[:, :, None].to(values.dtype)
+    out.index_add_(0, idx.reshape(-1), terms.reshape(n * K, -1))
+
+
 def sampled_sum(values: Tensor, idx: Tensor, weight: Tensor | None, T: int) -> Tensor:
     """``[T, …]``: each sample's ``values [S, …]`` added to the texels it reads, ``idx [S, K]``, times its weight
-    there (``weight [S, K]``; None: 1) — the transposed sampling operator's product without the operator, a block of
-    samples and one texel slot at a time (:data:`NORMAL_BLOCK` samples: the weighted copy of a block stays in the
-    allocator's reuse)."""
+    there (``weight [S, K]``; None: 1) — the transposed sampling operator's product (:func:`sampling_operator`)
+    without the operator, the same sums bit for bit (on the CPU), a block of :data:`NORMAL_BLOCK` (sample, slot)
+    terms at a time."""
     S, K = idx.shape
     if values.shape[0] != S or (weight is not None and tuple(weight.shape) != (S, K)):
         raise SolverError(f"sampled_sum: {values.shape[0]} samples' values for texels {tuple(idx.shape)} and weights "
                           f"{None if weight is None else tuple(weight.shape)}; give one row of each per sample")
     flat = values.reshape(S, -1)
     out = torch.zeros(T, flat.shape[1], dtype=values.dtype, device=values.device)
-    step = block_size(NORMAL_BLOCK, values.device)
+    step = max(block_size(NORMAL_BLOCK, values.device) // K, 1)
     for a in range(0, S, step):
         b = min(a + step, S)
-        for k in range(K):
-            part = flat[a:b] if weight is None else flat[a:b] * weight[a:b, k, None].to(values.dtype)
-            out.index_add_(0, idx[a:b, k], part)
+        _add_sampled(out, flat[a:b], idx[a:b], None if weight is None else weight[a:b])
     return out.reshape(T, *values.shape[1:])
 
 
 def sampled_blocks(J: Tensor, w: Tensor, idx: Tensor, weight: Tensor | None, T: int) -> Tensor:
     """Per-texel Gauss-Newton blocks ``[T, P, P]``: ``Σ_s Σ_k weight_sk J_sᵀ diag(w_s) J_s`` over the samples
     ``s`` that read texel ``t = idx[s, k]`` (``J [S, C, P]``, ``w [S, C]``, ``idx``, ``weight [S, K]``; None: 1).
-    Made a block of samples at a time (:data:`NORMAL_BLOCK`): the products of all samples at once were an
-    ``[S, P, P]`` array (0.63 GB on the 1.6 M pixel centres of 32 × 512² photos, 5.1 GB on 16 × 2048²), and the
-    transposed sampling operator that summed them one more ``[K·S]`` matrix."""
+    Made a block of samples at a time, summed as :func:`sampled_sum` sums (the transposed sampling operator's sums
+    bit for bit): the products of all samples at once were an ``[S, P, P]`` array (0.63 GB on the 1.6 M pixel
+    centres of 32 × 512² photos, 5.1 GB on 16 × 2048²), and the operator that summed them one more ``[K·S]``
+    matrix."""
     S, C, P = J.shape
     if tuple(w.shape) != (S, C):
         raise SolverError(f"sampled_blocks: weights {tuple(w.shape)} for a Jacobian {tuple(J.shape)}; give "
@@ -220,13 +229,12 @@ def sampled_blocks(J: Tensor, w: Tensor, idx: Tensor, weight: Tensor | None, T: 
         raise SolverError(f"sampled_blocks: texels {tuple(idx.shape)} and slot weights "
                           f"{None if weight is None else tuple(weight.shape)} for {S} samples; give [S, K] of both")
     out = torch.zeros(T, P * P, dtype=J.dtype, device=J.device)
-    step = block_size(NORMAL_BLOCK, J.device)
+    step = max(block_size(NORMAL_BLOCK, J.device) // idx.shape[1], 1)
     for a in range(0, S, step):
         b = min(a + step, S)
         Jb = J[a:b]
-        JWJ = torch.bmm((Jb * w[a:b, :, None].to(J.dtype)).transpose(1, 2), Jb).reshape(b - a, P * P)
-        for k in range(idx.shape[1]):
-            out.index_add_(0, idx[a:b, k], JWJ if weight is None else JWJ * weight[a:b, k, None].to(J.dtype))
+        JWJ = torch.bmm((Jb * w[a:b, :, None].to(J.dtype)).transpose(1, 2), Jb)          # [n, P, P]
+        _add_sampled(out, JWJ.reshape(b - a, P * P), idx[a:b], None if weight is None else weight[a:b])
     return out.reshape(T, P, P)
 
 
