@@ -218,7 +218,7 @@ def sampled_blocks(J: Tensor, w: Tensor, idx: Tensor, weight: Tensor | None, T: 
     """Per-texel Gauss-Newton blocks ``[T, P, P]``: ``Σ_s Σ_k weight_sk J_sᵀ diag(w_s) J_s`` over the samples
     ``s`` that read texel ``t = idx[s, k]`` (``J [S, C, P]``, ``w [S, C]``, ``idx``, ``weight [S, K]``; None: 1).
     Made a block of samples at a time, summed as :func:`sampled_sum` sums (the transposed sampling operator's sums
-    bit for bit): the products of all samples at once were an ``[S, P, P]`` array (0.63 GB on the 1.6 M pixel
+    bit for bit on the CPU): the products of all samples at once were an ``[S, P, P]`` array (0.63 GB on the 1.6 M pixel
     centres of 32 × 512² photos, 5.1 GB on 16 × 2048²), and the operator that summed them one more ``[K·S]``
     matrix."""
     S, C, P = J.shape
