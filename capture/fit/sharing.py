@@ -51,12 +51,13 @@ from kornia.contrib import KMeans
 from torch import Tensor
 
 from materials.model import Model
+from renderer.device import block_size
 
 from ..observations import Observations
 from .layout import ACC, MAX_STEP, Layout, from_canonical, param_groups
 from .noise import moderated_misfit, noise_sigma, photo_noise_ratio
 from .observability import block_index, pull_push, std_threshold
-from .texel import grid_values, jacobian, linear_solve, separable
+from .texel import SYSTEM_BLOCK, grid_values, jacobian, linear_solve, separable
 
 __all__ = ["share_materials", "unmatched_texels", "kmeans_pp", "pooled_materials", "borrow_albedo",
            "material_targets", "shared_default", "MIN_EVIDENCE"]
@@ -695,10 +696,17 @@ def _refit(model, layout, obs, theta, mat, label, scols, groups, y, w, iteration
         start = cur
         pred, J = jacobian(model, layout, sub, per_sample(mat), groups)
         r = ys - pred
-        Js = J[:, :, scols]
-        A = torch.zeros(K, Ps, Ps, dtype=ACC, device=dev).index_add(
-            0, lab_s, torch.einsum("scp,s,scq->spq", Js, ws, Js))
-        g = torch.zeros(K, Ps, dtype=ACC, device=dev).index_add(0, lab_s, torch.einsum("scp,s,sc->sp", Js, ws, r))
+        # the materials' normal equations a block of samples at a time, summed in the samples' order (the same
+        # values to the last bit): the shared columns' copy and the products of all samples at once were three
+        # [S, 3·Ps]-sized arrays beside the Jacobian
+        A = torch.zeros(K, Ps, Ps, dtype=ACC, device=dev)
+        g = torch.zeros(K, Ps, dtype=ACC, device=dev)
+        step = block_size(SYSTEM_BLOCK, dev)
+        for i in range(0, J.shape[0], step):
+            j = min(i + step, J.shape[0])
+            Js, lab = J[i:j][:, :, scols], lab_s[i:j]
+            A.index_add_(0, lab, torch.einsum("scp,s,scq->spq", Js, ws[i:j], Js))
+            g.index_add_(0, lab, torch.einsum("scp,s,sc->sp", Js, ws[i:j], r[i:j]))
         d = torch.diagonal(A, dim1=-2, dim2=-1)
         for _attempt in range(4):
             M = A + lam[:, None, None] * torch.diag_embed(d + 1e-12 * d.mean(-1, keepdim=True).clamp_min(1e-30))
