@@ -175,15 +175,14 @@ class _Placement(NamedTuple):
         return out
 
 
-def sampling_operator(idx: Tensor, weight: Tensor, T: int, forward: bool = True) -> tuple[Tensor | None, Tensor]:
-    """Sparse CSR matrices ``[S, T]`` (None unless ``forward``) and ``[T, S]`` of the sampling footprint: row s
-    holds sample s's weights at its texels ``idx [S, K]`` (``weight [S, K]``); the transpose is built
-    directly, not transposed."""
+def sampling_operator(idx: Tensor, weight: Tensor, T: int) -> tuple[Tensor, Tensor]:
+    """Sparse CSR matrices ``[S, T]`` and ``[T, S]`` of the sampling footprint: row s holds sample s's weights at its
+    texels ``idx [S, K]`` (``weight [S, K]``); the transpose is built directly, not transposed. (Sums through the
+    transpose alone, without keeping it: :func:`sampled_sum`.)"""
     S, K = idx.shape
     rows = torch.arange(S, device=idx.device).repeat_interleave(K)
     cols, vals = idx.reshape(-1), weight.reshape(-1)
-    fwd = _csr(rows, cols, vals, (S, T)) if forward else None
-    return fwd, _csr(cols, rows, vals, (T, S))
+    return _csr(rows, cols, vals, (S, T)), _csr(cols, rows, vals, (T, S))
 
 
 def _add_sampled(out: Tensor, values: Tensor, idx: Tensor, weight: Tensor | None) -> None:
