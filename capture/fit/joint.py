@@ -30,6 +30,10 @@ __all__ = ["PRIOR_UNIT", "JOINT_ATTEMPTS", "refine_joint"]
 #: (:func:`std_threshold`): each parameter's ``ParamSpec.prior_unit`` (materials/params.py, with the measurement
 #: that chose the albedo's).
 PRIOR_UNIT = {p.name: p.prior_unit for p in CANONICAL.values() if p.prior_unit is not None}
+#: Texels per band of the neighbour prior's energy (whole grid rows) and of its matrix's pattern
+#: (:class:`_SharingPrior`): 3.7 MB per ``[n, 7]`` float64 temporary, which stays in the cache and is not a fresh
+#: mapping at each call.
+PRIOR_BAND = 2 ** 16
 
 
 class _SharingPrior:
@@ -82,13 +86,15 @@ class _SharingPrior:
         col = ok[:-2] & ~ok[1:-1] & ok[2:]
         self.bridge_i = torch.cat([flat[:, :-2][row], flat[:-2][col]])
         self.bridge_j = torch.cat([flat[:, 2:][row], flat[2:][col]])
-        # every pair the energy may count (edges along u, along v, bridges) as flat texel indices, in the order of
-        # the weights of :meth:`linearise`; the product uses them as sparse matrices (:meth:`_laplacian`)
-        self.pair_i = torch.cat([flat[:, :-1].reshape(-1), flat[:-1].reshape(-1), self.bridge_i])
-        self.pair_j = torch.cat([flat[:, 1:].reshape(-1), flat[1:].reshape(-1), self.bridge_j])
-        # the pairs that count (the edges' masks, and every bridge): the only ones the sparse matrices hold
-        self._edge = torch.cat([self.edge_u.reshape(-1) > 0, self.edge_v.reshape(-1) > 0,
-                                torch.ones(self.bridge_i.shape[0], dtype=torch.bool, device=dev)])
+        # the pairs that count — edges along u, along v, then the bridges — as flat texel indices: the sparse
+        # matrices of the product hold only them (:meth:`_laplacian`), their weights picked from the grid's
+        # by the edges' places (``_at_u``, ``_at_v``)
+        self._at_u = torch.nonzero(self.edge_u.reshape(-1) > 0).reshape(-1)
+        self._at_v = torch.nonzero(self.edge_v.reshape(-1) > 0).reshape(-1)
+        self.pair_i = torch.cat([flat[:, :-1].reshape(-1)[self._at_u], flat[:-1].reshape(-1)[self._at_v],
+                                 self.bridge_i])
+        self.pair_j = torch.cat([flat[:, 1:].reshape(-1)[self._at_u], flat[1:].reshape(-1)[self._at_v],
+                                 self.bridge_j])
         self._pattern = None
         self.lap = None
         self.delta = float(delta)
@@ -99,12 +105,10 @@ class _SharingPrior:
         self.anchor_delta = 1.0
         self.nu = 0.0
         self.omega_u = None
-        self._scale = None           # (dp, its columns over the units) of the last linearise
         self._kept = {}              # matvec's kept working arrays
 
     def set_units(self, units: Mapping[str, float]) -> None:
         """Replace the units of the parameters in ``units`` (name → unit)."""
-        self._scale = None
         for i, n in enumerate(self.col_names):
             if n in units:
                 self.thr[i] = float(units[n])
@@ -139,17 +143,34 @@ class _SharingPrior:
         return (self._columns(canon) - self.target) / self.thr * self.anchored
 
     def energy_tensor(self, canon: Tensor) -> Tensor:
-        """The prior's energy at ``canon`` ``[T, P]`` as a (differentiable) scalar tensor."""
-        du, dv, db = self._diff(canon)
-        e = self.mu * ((robust_rho(du, "huber", self.delta) * self.edge_u).sum()
-                       + (robust_rho(dv, "huber", self.delta) * self.edge_v).sum()
-                       + robust_rho(db, "huber", self.delta).sum())
-        if self.target is not None and self.nu > 0:
-            e = e + self.nu * robust_rho(self._anchor_diff(canon), "huber", self.anchor_delta).sum()
+        """The prior's energy at ``canon`` ``[T, P]`` as a (differentiable) scalar tensor, summed a band of
+        :data:`PRIOR_BAND` texels' rows at a time: whole, each trial's differences and their costs were a dozen
+        fresh ``[T, C]`` arrays, new pages each above glibc's mmap ceiling (1024² maps: 0.36 s a call, in bands
+        0.05 s)."""
+        H, W = self.H, self.W
+        rows = max(1, PRIOR_BAND // W)
+        huber = self.delta
+        anchored = self.target is not None and self.nu > 0
+        e = torch.zeros((), dtype=canon.dtype, device=canon.device)
+        for a in range(0, H, rows):
+            b = min(a + rows, H)
+            band = self._columns(canon[a * W:min(b + 1, H) * W])            # (with the next row: the v edges)
+            c = (band / self.thr).reshape(-1, W, band.shape[-1])
+            du = c[:b - a, :-1] - c[:b - a, 1:]
+            dv = c[:-1] - c[1:]                                             # (b − a rows, one fewer in the last band)
+            e = e + self.mu * ((robust_rho(du, "huber", huber) * self.edge_u[a:b]).sum()
+                               + (robust_rho(dv, "huber", huber) * self.edge_v[a:a + dv.shape[0]]).sum())
+            if anchored:
+                da = (band[:(b - a) * W] - self.target[a * W:b * W]) / self.thr * self.anchored
+                e = e + self.nu * robust_rho(da, "huber", self.anchor_delta).sum()
+        if self.bridge_i.shape[0]:
+            flat_i, flat_j = self._columns(canon[self.bridge_i]), self._columns(canon[self.bridge_j])
+            e = e + self.mu * robust_rho((flat_i - flat_j) / self.thr, "huber", huber).sum()
         return e
 
     def energy(self, canon: Tensor) -> float:
-        return float(self.energy_tensor(canon))
+        with torch.no_grad():
+            return float(self.energy_tensor(canon))
 
     def linearise(self, canon: Tensor, dp: Tensor) -> tuple[Tensor, Tensor]:
         """IRLS weights at ``canon``; returns (descent gradient [T, P] in θ, preconditioner diagonal [T, P])."""
@@ -165,12 +186,12 @@ class _SharingPrior:
             g = g - self.omega_u * da
             deg = deg + self.omega_u
         C = du.shape[-1]
-        wp = torch.cat([wu.expand(*du.shape).reshape(-1, C), wv.expand(*dv.shape).reshape(-1, C), wb.expand(*db.shape)])
-        anchor = self.omega_u if self.target is not None and self.nu > 0 else torch.zeros_like(canon[:, :C])
-        self.lap = None                 # (the last linearisation's matrices freed before the new ones are made)
-        self.lap = self._laplacian(wp, anchor.expand(canon.shape[0], C))
+        # the edges' weights (those along u, along v, the bridges: the pairs' order)
+        wp = torch.cat([wu.expand(*du.shape).reshape(-1, C)[self._at_u],
+                        wv.expand(*dv.shape).reshape(-1, C)[self._at_v], wb.expand(*db.shape)])
         scale = self._columns(dp) / self.thr
-        self._scale = (dp, scale)       # (every product of this linearisation scales by it)
+        self.lap = None                 # (the last linearisation's matrix freed before the new one is made)
+        self.lap = self._laplacian(wp, deg, scale)
         return self._full(g * scale), self._full(deg * scale.square())
 
     def _spread(self, fu: Tensor, fv: Tensor, fb: Tensor, first: float, second: float) -> Tensor:
@@ -186,41 +207,88 @@ class _SharingPrior:
             acc.index_add_(0, self.bridge_i, first * fb).index_add_(0, self.bridge_j, second * fb)
         return acc
 
-    def _laplacian(self, wp: Tensor, diag: Tensor) -> list[Tensor]:
-        """The prior's Gauss-Newton matrix, one ``T × T`` sparse CSR matrix per column of ``[T, C]``:
-        ``Σ_pairs w_c (e_i − e_j)(e_i − e_j)ᵀ`` plus ``diag [T, C]`` (the anchor's weights), from the pair weights
-        ``wp [pairs, C]``. The columns share one pattern, built once over the pairs that are edges or bridges (the
-        others weigh 0), so a product costs one sparse product per column instead of slicing the grid (41 against 92
-        ms on 256² maps with GGX + Lambert's 7 columns, 2 threads). One ``T·C × T·C`` matrix of all columns (the
-        earlier form) held C times the indices and sorted every pair of the grid: on 1024² maps, 75 % observed,
-        its first linearisation took 5.8 s and the process peaked at 4.7 GB, per column 2.3 s and 2.6 GB, the same
-        products to 1e-16 (157 against 162 ms each)."""
-        T, C = diag.shape
+    def _laplacian(self, wp: Tensor, deg: Tensor, scale: Tensor) -> Tensor:
+        """The prior's Gauss-Newton matrix in θ, ``S (Σ_edges w_c (e_i − e_j)(e_i − e_j)ᵀ + Ω) S`` for each column c
+        (``S`` the θ-to-units scale ``scale [T, C]``, ``Ω`` the anchor's weights), from the edges' weights ``wp
+        [edges, C]`` and ``deg [T, C]``, each texel's edge and anchor weights summed (the diagonal): one sparse CSR
+        matrix, ``[T·C] × [T·P]``, whose row ``t·C + c`` is texel t's column c and whose columns are θ's entries
+        texel by texel, so that a product reads θ's ``[T, P]`` array as it lies, writes ``[T, C]`` as it lies, and
+        the scale is in the values. Its pattern is built once (:meth:`_lap_pattern`). Measured on 1024² maps, 7
+        columns, 2 threads: 12 ms a product, against 40 ms for one ``T × T`` matrix per column with an entry per edge
+        end on the diagonal (6.2 non-zeros per texel) and the scale applied at each product, 34 ms for those with one
+        diagonal entry per texel (3.6; the columns' strided copies and scaling were half of it), and 23 ms for one
+        matrix whose rows take the columns one after the other (each column's sweep reads every cache line of θ, and
+        the result is transposed). One ``T·C × T·C`` matrix sorted from every pair of the grid (an earlier form)
+        took 5.8 s to build and peaked at 4.7 GB there."""
+        T, C = deg.shape
         if self._pattern is None:
-            i, j = self.pair_i[self._edge], self.pair_j[self._edge]
-            d = torch.arange(T, device=diag.device)
-            self._pattern = CsrPattern.of(torch.cat([i, j, i, j, d]), torch.cat([i, j, j, i, d]), (T, T))
-        w = wp[self._edge]
-        # each column's values made on their own: all columns' at once, [pairs, C] in float64, were 1.2 GB beside the
-        # matrices on 2048² maps
-        return [self._pattern.matrix(torch.cat([w[:, c], w[:, c], -w[:, c], -w[:, c], diag[:, c]])) for c in range(C)]
+            self._pattern = self._lap_pattern(T, C)
+        one, row, take, crow, col = self._pattern
+        n = one.col.shape[0]
+        # the columns' values (in one column's pattern order, the scale in), one column at a time, then placed in
+        # the matrix's order by one gather; all columns' weights at once in the triplets' order, [pairs, C] in
+        # float64, were 1.2 GB beside the matrices on 2048² maps
+        by_col = torch.empty(C, n, dtype=wp.dtype, device=wp.device)
+        for c in range(C):
+            sc = scale[:, c].contiguous()
+            v = one.matrix(torch.cat([-wp[:, c], -wp[:, c], deg[:, c]])).values()
+            torch.mul(v, sc[row], out=by_col[c]).mul_(sc[one.col])
+        vals = torch.index_select(by_col.view(-1), 0, take)
+        del by_col
+        return torch.sparse_csr_tensor(crow, col, vals, (C * T, T * self.P))
 
-    def matvec(self, v: Tensor, dp: Tensor, out: Tensor | None = None) -> Tensor:
-        """The prior's Gauss-Newton product with ``v [T, P]`` in θ, at the weights of the last :meth:`linearise`, into
-        ``out [T, P]`` when given (as :meth:`_Normal.matvec`: no temporary of the size of ``v``)."""
-        scale = self._scale[1] if self._scale is not None and self._scale[0] is dp else self._columns(dp) / self.thr
+    def _lap_pattern(self, T: int, C: int) -> tuple[CsrPattern, Tensor, Tensor, Tensor, Tensor]:
+        """``(one, row, take, crow, col)`` of :meth:`_laplacian`: ``one`` the pattern of one column's ``T × T``
+        matrix — the edges both ways and one diagonal entry per texel — with ``row`` its entries' rows; the matrix's
+        row pointers ``crow`` and columns ``col``; ``take``, for each of its entries, the place of its value among
+        the columns' values laid one column after the other (``c·n + k``, k an entry of ``one``). Texel t's rows are
+        its ``L_t`` entries of ``one`` once per column, so these are made a band of texels at a time
+        (:data:`PRIOR_BAND`), without a sort."""
+        i, j = self.pair_i, self.pair_j
+        dev = i.device
+        d = torch.arange(T, device=dev)
+        one = CsrPattern.of(torch.cat([i, j, d]), torch.cat([j, i, d]), (T, T))
+        n = one.col.shape[0]
+        itype = torch.int32 if max(C * n, T * self.P) < 2 ** 31 else torch.long
+        crow1 = one.crow.long()
+        lens = crow1[1:] - crow1[:-1]
+        row = torch.repeat_interleave(torch.arange(T, dtype=itype, device=dev), lens)
+        crow = torch.empty(T * C + 1, dtype=torch.long, device=dev)
+        crow[:-1] = (C * crow1[:-1, None] + lens[:, None] * torch.arange(C, device=dev)).reshape(-1)
+        crow[-1] = C * n
+        cols = torch.tensor(self.cols, dtype=torch.long, device=dev)
+        take = torch.empty(C * n, dtype=itype, device=dev)
+        col = torch.empty(C * n, dtype=itype, device=dev)
+        for a in range(0, T, PRIOR_BAND):
+            b = min(a + PRIOR_BAND, T)
+            L, start = lens[a:b], crow1[a:b]
+            lo, hi = C * int(crow1[a]), C * int(crow1[b])
+            t = torch.repeat_interleave(torch.arange(b - a, device=dev), C * L)     # each place's texel (in the band)
+            q = torch.arange(hi - lo, device=dev) - (C * (start - crow1[a]))[t]       # its place in the texel's rows
+            Lt = L[t]
+            c = torch.div(q, Lt, rounding_mode="floor")
+            k = start[t] + q - c * Lt                                                   # its entry of one
+            take[lo:hi] = c * n + k
+            col[lo:hi] = one.col[k].long() * self.P + cols[c]
+        return one, row, take, crow.to(itype), col
+
+    def matvec(self, v: Tensor, out: Tensor | None = None) -> Tensor:
+        """The prior's Gauss-Newton product with ``v [T, P]`` in θ, at the weights and scale of the last
+        :meth:`linearise`, into ``out [T, P]`` when given (as :meth:`_Normal.matvec`: no temporary of the size of
+        ``v`` when the prior is on every column)."""
         T = v.shape[0]
-        acc = kept_array(self._kept, "acc", (len(self.lap), T), v.dtype, v.device)       # [C, T]: a column per row
-        u = kept_array(self._kept, "u", (T,), v.dtype, v.device)
-        for c, (col, lap) in enumerate(zip(self.cols, self.lap, strict=True)):
-            torch.mul(v[:, col], scale[:, c], out=u)
-            torch.mv(lap, u, out=acc[c])
-        if out is None:
-            return self._full(acc.t() * scale)
+        x = v.reshape(-1)
         if self.every_column:
-            return torch.mul(acc.t(), scale, out=out)
+            if out is None:
+                out = torch.empty_like(v)
+            torch.mv(self.lap, x, out=out.view(-1))
+            return out
+        acc = kept_array(self._kept, "acc", (T, len(self.cols)), v.dtype, v.device)
+        torch.mv(self.lap, x, out=acc.view(-1))
+        if out is None:
+            return self._full(acc.clone())
         out.zero_()
-        out[:, self.cols] = acc.t() * scale
+        out[:, self.cols] = acc
         return out
 
 
@@ -448,7 +516,7 @@ class _Normal:
         data = self.data.matvec(v, self.dp, self.J, self.w, out=kept_array(self.kept, "data", v.shape, v.dtype,
                                                                             v.device))
         if self.prior is not None:
-            data.add_(self.prior.matvec(v, self.dp, out=kept_array(self.kept, "prior", v.shape, v.dtype, v.device)))
+            data.add_(self.prior.matvec(v, out=kept_array(self.kept, "prior", v.shape, v.dtype, v.device)))
         torch.mul(self.diag, lam, out=out).mul_(v).add_(data)
         return torch.where(self.live[:, None], out, v, out=out)
 

@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 import materials
-from capture.fit import Layout, SolverError, solve_fast
+from capture.fit import Layout, SolverError, joint, solve_fast
 from capture.fit.joint import _SharingPrior
 from capture.fit.sharing import (
     _albedo_prior,
@@ -225,7 +225,7 @@ def _prior_check(prior, canon, layout, skip):
     (gE,) = torch.autograd.grad(prior.energy_tensor(x), x)
     torch.testing.assert_close(grad, -0.5 * gE, rtol=1e-10, atol=1e-12)
     v = torch.randn(T, layout.P, generator=g, dtype=torch.float64)
-    mv = prior.matvec(v, dp)
+    mv = prior.matvec(v)
     x2 = canon.clone().requires_grad_(True)
     (g2,) = torch.autograd.grad(prior.energy_tensor(x2), x2, create_graph=True)
     (hv,) = torch.autograd.grad((g2 * v).sum(), x2)
@@ -240,7 +240,12 @@ def _prior_check(prior, canon, layout, skip):
     return grad, diag
 
 
-def test_sharing_prior_gradient_and_matvec_match_its_energy():
+@pytest.mark.parametrize("band", [None, 7])
+def test_sharing_prior_gradient_and_matvec_match_its_energy(band, monkeypatch):
+    # band 7: the energy summed a grid row at a time and the product's pattern made 7 texels at a time (bands that
+    # end inside a row), instead of in one band
+    if band is not None:
+        monkeypatch.setattr(joint, "PRIOR_BAND", band)
     model = _ggx_lambert()
     layout = Layout.of(model)
     H = W = 5
@@ -272,9 +277,13 @@ def test_sharing_prior_gradient_and_matvec_match_its_energy():
     assert prior.energy(canon) == pytest.approx(0.7 * by_hand, rel=1e-12)
 
 
-def test_sharing_prior_anchor_term_ties_the_material_parameters_to_the_proposal():
+@pytest.mark.parametrize("band", [None, 6])
+def test_sharing_prior_anchor_term_ties_the_material_parameters_to_the_proposal(band, monkeypatch):
     # the unary term ν Σ ρ_H((p − m) / t): zero at the proposal, only on the material columns (not the albedo),
-    # Huber beyond anchor_delta units, and consistent with its own gradient and Gauss-Newton product
+    # Huber beyond anchor_delta units, and consistent with its own gradient and Gauss-Newton product (band 6: in
+    # bands of one grid row and of 6 texels, as test_sharing_prior_gradient_and_matvec_match_its_energy)
+    if band is not None:
+        monkeypatch.setattr(joint, "PRIOR_BAND", band)
     model = _ggx_lambert()
     layout = Layout.of(model)
     H = W = 4
