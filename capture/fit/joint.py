@@ -19,7 +19,7 @@ from ..observations import Observations
 from .layout import ACC, INVERSE_BLOCK, MAX_STEP, Layout, SolverError
 from .noise import NOISE, irls_weights, noise_sigma, photo_noise_ratio, robust_rho
 from .observability import std_threshold
-from .operators import CsrPattern, csr_rows, pixel_operator, sampled_blocks, sampling_operator
+from .operators import CsrPattern, csr_matrix, csr_rows, pixel_operator, sampled_blocks, sampling_operator
 from .sharing import shared_default
 from .texel import JACOBIAN_BLOCK, jacobian, weighted_cost
 
@@ -132,16 +132,6 @@ class _SharingPrior:
         out[:, self.cols] = x
         return out
 
-    def _diff(self, canon: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Differences in units: along u ``[H, W−1, C]`` and along v ``[H−1, W, C]`` (all pairs; the edges that
-        count are :attr:`edge_u`, :attr:`edge_v`), and over the bridges ``[B, C]``."""
-        flat = self._columns(canon) / self.thr
-        c = flat.reshape(self.H, self.W, -1)
-        return c[:, :-1] - c[:, 1:], c[:-1] - c[1:], flat[self.bridge_i] - flat[self.bridge_j]
-
-    def _anchor_diff(self, canon: Tensor) -> Tensor:
-        return (self._columns(canon) - self.target) / self.thr * self.anchored
-
     def energy_tensor(self, canon: Tensor) -> Tensor:
         """The prior's energy at ``canon`` ``[T, P]`` as a (differentiable) scalar tensor, summed a band of
         :data:`PRIOR_BAND` texels' rows at a time: whole, each trial's differences and their costs were a dozen
@@ -164,8 +154,8 @@ class _SharingPrior:
                 da = (band[:(b - a) * W] - self.target[a * W:b * W]) / self.thr * self.anchored
                 e = e + self.nu * robust_rho(da, "huber", self.anchor_delta).sum()
         if self.bridge_i.shape[0]:
-            flat_i, flat_j = self._columns(canon[self.bridge_i]), self._columns(canon[self.bridge_j])
-            e = e + self.mu * robust_rho((flat_i - flat_j) / self.thr, "huber", huber).sum()
+            db = self._columns(canon[self.bridge_i]) / self.thr - self._columns(canon[self.bridge_j]) / self.thr
+            e = e + self.mu * robust_rho(db, "huber", huber).sum()
         return e
 
     def energy(self, canon: Tensor) -> float:
@@ -173,39 +163,63 @@ class _SharingPrior:
             return float(self.energy_tensor(canon))
 
     def linearise(self, canon: Tensor, dp: Tensor) -> tuple[Tensor, Tensor]:
-        """IRLS weights at ``canon``; returns (descent gradient [T, P] in θ, preconditioner diagonal [T, P])."""
-        du, dv, db = self._diff(canon)
-        wu = self.mu * irls_weights(du, "huber", self.delta) * self.edge_u
-        wv = self.mu * irls_weights(dv, "huber", self.delta) * self.edge_v
-        wb = self.mu * irls_weights(db, "huber", self.delta)
-        g = self._spread(wu * du, wv * dv, wb * db, -1.0, 1.0)
-        deg = self._spread(wu, wv, wb, 1.0, 1.0)
+        """IRLS weights at ``canon``; returns (descent gradient [T, P] in θ, preconditioner diagonal [T, P]), and makes
+        the product's matrix (:meth:`_laplacian`).
+
+        The edges are weighed a band of :data:`PRIOR_BAND` texels' rows at a time (with the rows either side, for the
+        edges across the band's borders), each texel's sums taken in the order of a whole pass — its edge to the
+        right, to the left, below, above, then the bridges and the anchor — so the gradient and diagonal are those of
+        the whole grid's arrays to the last bit; whole, the differences, weights and their products were some twenty
+        fresh ``[T, C]`` arrays (2048² maps: 235 MB each, new pages at every linearisation)."""
+        H, W, T, C = self.H, self.W, canon.shape[0], len(self.cols)
+        g = torch.zeros(T, C, dtype=canon.dtype, device=canon.device)
+        deg = torch.zeros_like(g)
+        G, D = g.view(H, W, C), deg.view(H, W, C)
+        n_u = self._at_u.shape[0]
+        wp = torch.empty(self.pair_i.shape[0], C, dtype=canon.dtype, device=canon.device)     # the edges' weights
+        rows = max(1, PRIOR_BAND // W)
+        for a in range(0, H, rows):
+            b = min(a + rows, H)
+            a0, b1 = max(a - 1, 0), min(b + 1, H)
+            c = (self._columns(canon[a0 * W:b1 * W]) / self.thr).reshape(b1 - a0, W, C)
+            du = c[a - a0:b - a0, :-1] - c[a - a0:b - a0, 1:]                  # the band's edges along u
+            wu = self.mu * irls_weights(du, "huber", self.delta) * self.edge_u[a:b]
+            fu = wu * du
+            G[a:b, :-1] -= fu
+            G[a:b, 1:] += fu
+            D[a:b, :-1] += wu
+            D[a:b, 1:] += wu
+            dv = c[:-1] - c[1:]                                                 # edges (r, r + 1), r = a0 … b1 − 2
+            wv = self.mu * irls_weights(dv, "huber", self.delta) * self.edge_v[a0:b1 - 1]
+            fv = wv * dv
+            top, bottom = slice(a - a0, min(b, H - 1) - a0), slice(max(a, 1) - 1 - a0, b - 1 - a0)
+            G[a:min(b, H - 1)] -= fv[top]                                      # the band's texels above an edge
+            D[a:min(b, H - 1)] += wv[top]
+            G[max(a, 1):b] += fv[bottom]                                        # … and below one
+            D[max(a, 1):b] += wv[bottom]
+            lo, hi = (int(x) for x in torch.searchsorted(self._at_u, torch.tensor([a, b], device=canon.device)
+                                                         * (W - 1)))
+            wp[lo:hi] = wu.reshape(-1, C)[self._at_u[lo:hi] - a * (W - 1)]
+            lo, hi = (int(x) for x in torch.searchsorted(self._at_v, torch.tensor([a, min(b, H - 1)],
+                                                                                  device=canon.device) * W))
+            wp[n_u + lo:n_u + hi] = wv[top].reshape(-1, C)[self._at_v[lo:hi] - a * W]
+        if self.bridge_i.shape[0]:
+            db = self._columns(canon[self.bridge_i]) / self.thr - self._columns(canon[self.bridge_j]) / self.thr
+            wb = self.mu * irls_weights(db, "huber", self.delta)
+            g.index_add_(0, self.bridge_i, -1.0 * (wb * db)).index_add_(0, self.bridge_j, wb * db)
+            deg.index_add_(0, self.bridge_i, wb).index_add_(0, self.bridge_j, wb)
+            wp[n_u + self._at_v.shape[0]:] = wb
         if self.target is not None and self.nu > 0:
-            da = self._anchor_diff(canon)
-            self.omega_u = self.nu * irls_weights(da, "huber", self.anchor_delta) * self.anchored
-            g = g - self.omega_u * da
-            deg = deg + self.omega_u
-        C = du.shape[-1]
-        # the edges' weights (those along u, along v, the bridges: the pairs' order)
-        wp = torch.cat([wu.expand(*du.shape).reshape(-1, C)[self._at_u],
-                        wv.expand(*dv.shape).reshape(-1, C)[self._at_v], wb.expand(*db.shape)])
+            for a in range(0, T, rows * W):
+                b = min(a + rows * W, T)
+                da = (self._columns(canon[a:b]) - self.target[a:b]) / self.thr * self.anchored
+                omega = self.nu * irls_weights(da, "huber", self.anchor_delta) * self.anchored
+                g[a:b] -= omega * da
+                deg[a:b] += omega
         scale = self._columns(dp) / self.thr
         self.lap = None                 # (the last linearisation's matrix freed before the new one is made)
         self.lap = self._laplacian(wp, deg, scale)
         return self._full(g * scale), self._full(deg * scale.square())
-
-    def _spread(self, fu: Tensor, fv: Tensor, fb: Tensor, first: float, second: float) -> Tensor:
-        """Pair values back to texels ``[T, C]``: ``first·f`` to the first texel of each pair, ``second·f`` to the
-        other (pairs along u, along v, bridges)."""
-        acc = torch.zeros(self.H, self.W, fu.shape[-1], dtype=fu.dtype, device=fu.device)
-        acc[:, :-1] += first * fu
-        acc[:, 1:] += second * fu
-        acc[:-1] += first * fv
-        acc[1:] += second * fv
-        acc = acc.reshape(self.H * self.W, -1)
-        if fb.shape[0]:
-            acc.index_add_(0, self.bridge_i, first * fb).index_add_(0, self.bridge_j, second * fb)
-        return acc
 
     def _laplacian(self, wp: Tensor, deg: Tensor, scale: Tensor) -> Tensor:
         """The prior's Gauss-Newton matrix in θ, ``S (Σ_edges w_c (e_i − e_j)(e_i − e_j)ᵀ + Ω) S`` for each column c
@@ -213,37 +227,37 @@ class _SharingPrior:
         [edges, C]`` and ``deg [T, C]``, each texel's edge and anchor weights summed (the diagonal): one sparse CSR
         matrix, ``[T·C] × [T·P]``, whose row ``t·C + c`` is texel t's column c and whose columns are θ's entries
         texel by texel, so that a product reads θ's ``[T, P]`` array as it lies, writes ``[T, C]`` as it lies, and
-        the scale is in the values. Its pattern is built once (:meth:`_lap_pattern`). Measured on 1024² maps, 7
-        columns, 2 threads: 12 ms a product, against 40 ms for one ``T × T`` matrix per column with an entry per edge
-        end on the diagonal (6.2 non-zeros per texel) and the scale applied at each product, 34 ms for those with one
-        diagonal entry per texel (3.6; the columns' strided copies and scaling were half of it), and 23 ms for one
-        matrix whose rows take the columns one after the other (each column's sweep reads every cache line of θ, and
-        the result is transposed). One ``T·C × T·C`` matrix sorted from every pair of the grid (an earlier form)
-        took 5.8 s to build and peaked at 4.7 GB there."""
+        the scale is in the values. Its pattern is built once (:meth:`_lap_pattern`), its values placed by one
+        gather. Measured on 1024² maps, 7 columns, 2 threads: 12 ms a product, against 40 ms for one ``T × T``
+        matrix per column with an entry per edge end on the diagonal (6.2 non-zeros per texel) and the scale applied
+        at each product, 34 ms for those with one diagonal entry per texel (3.6; the columns' strided copies and
+        scaling were half of it), and 23 ms for one matrix whose rows take the columns one after the other (each
+        column's sweep reads every cache line of θ, and the result is transposed). One ``T·C × T·C`` matrix sorted
+        from every pair of the grid (an earlier form) took 5.8 s to build and peaked at 4.7 GB there."""
         T, C = deg.shape
         if self._pattern is None:
             self._pattern = self._lap_pattern(T, C)
-        one, row, take, crow, col = self._pattern
-        n = one.col.shape[0]
-        # the columns' values (in one column's pattern order, the scale in), one column at a time, then placed in
-        # the matrix's order by one gather; all columns' weights at once in the triplets' order, [pairs, C] in
-        # float64, were 1.2 GB beside the matrices on 2048² maps
-        by_col = torch.empty(C, n, dtype=wp.dtype, device=wp.device)
-        for c in range(C):
-            sc = scale[:, c].contiguous()
-            v = one.matrix(torch.cat([-wp[:, c], -wp[:, c], deg[:, c]])).values()
-            torch.mul(v, sc[row], out=by_col[c]).mul_(sc[one.col])
-        vals = torch.index_select(by_col.view(-1), 0, take)
-        del by_col
-        return torch.sparse_csr_tensor(crow, col, vals, (C * T, T * self.P))
+        crow, col, src = self._pattern
+        # every entry's value in the triplets' order (i → j, j → i, the diagonal), the scale of its row and of its
+        # column in, then placed by one gather (the rows' scale repeated per entry instead took 2.6 s on 2048² maps)
+        n_e = wp.shape[0]
+        S = scale.contiguous()
+        Si, Sj = torch.index_select(S, 0, self.pair_i), torch.index_select(S, 0, self.pair_j)
+        z = torch.empty(2 * n_e + T, C, dtype=wp.dtype, device=wp.device)
+        torch.mul(-wp, Si, out=z[:n_e]).mul_(Sj)
+        torch.mul(-wp, Sj, out=z[n_e:2 * n_e]).mul_(Si)
+        del Si, Sj
+        torch.mul(deg, S, out=z[2 * n_e:]).mul_(S)
+        vals = torch.index_select(z.view(-1), 0, src)
+        del z
+        return csr_matrix(crow, col, vals, (C * T, T * self.P))
 
-    def _lap_pattern(self, T: int, C: int) -> tuple[CsrPattern, Tensor, Tensor, Tensor, Tensor]:
-        """``(one, row, take, crow, col)`` of :meth:`_laplacian`: ``one`` the pattern of one column's ``T × T``
-        matrix — the edges both ways and one diagonal entry per texel — with ``row`` its entries' rows; the matrix's
-        row pointers ``crow`` and columns ``col``; ``take``, for each of its entries, the place of its value among
-        the columns' values laid one column after the other (``c·n + k``, k an entry of ``one``). Texel t's rows are
-        its ``L_t`` entries of ``one`` once per column, so these are made a band of texels at a time
-        (:data:`PRIOR_BAND`), without a sort."""
+    def _lap_pattern(self, T: int, C: int) -> tuple[Tensor, Tensor, Tensor]:
+        """``(crow, col, src)`` of :meth:`_laplacian`'s matrix: its row pointers, its columns and, for each entry,
+        where its value is among the triplets' values ``[2·edges + T, C]`` flattened. It is one column's ``T × T``
+        pattern — the edges both ways and one diagonal entry per texel, sorted by row — repeated for each column,
+        with the columns moved to θ's places (``t·P + column``): texel t's rows are its ``L_t`` entries once per
+        column, made a band of texels at a time (:data:`PRIOR_BAND`) without a sort."""
         i, j = self.pair_i, self.pair_j
         dev = i.device
         d = torch.arange(T, device=dev)
@@ -252,25 +266,29 @@ class _SharingPrior:
         itype = torch.int32 if max(C * n, T * self.P) < 2 ** 31 else torch.long
         crow1 = one.crow.long()
         lens = crow1[1:] - crow1[:-1]
-        row = torch.repeat_interleave(torch.arange(T, dtype=itype, device=dev), lens)
         crow = torch.empty(T * C + 1, dtype=torch.long, device=dev)
         crow[:-1] = (C * crow1[:-1, None] + lens[:, None] * torch.arange(C, device=dev)).reshape(-1)
         crow[-1] = C * n
+        # each entry of one: its triplet (i → j, j → i, then the diagonal), the row of its value in _laplacian
+        q = one.order.long() if one.order is not None else torch.arange(n, device=dev)
         cols = torch.tensor(self.cols, dtype=torch.long, device=dev)
-        take = torch.empty(C * n, dtype=itype, device=dev)
+        src = torch.empty(C * n, dtype=itype, device=dev)
         col = torch.empty(C * n, dtype=itype, device=dev)
         for a in range(0, T, PRIOR_BAND):
             b = min(a + PRIOR_BAND, T)
             L, start = lens[a:b], crow1[a:b]
             lo, hi = C * int(crow1[a]), C * int(crow1[b])
-            t = torch.repeat_interleave(torch.arange(b - a, device=dev), C * L)     # each place's texel (in the band)
-            q = torch.arange(hi - lo, device=dev) - (C * (start - crow1[a]))[t]       # its place in the texel's rows
+            first = C * (start - crow1[a])                  # where each texel's rows start, in the band's places
+            t = torch.zeros(hi - lo, dtype=torch.long, device=dev)
+            t[first[1:]] = 1
+            t = t.cumsum_(0)                                # each place's texel (in the band; every texel has a row)
+            r = torch.arange(hi - lo, device=dev) - first[t]                             # its place in the texel's rows
             Lt = L[t]
-            c = torch.div(q, Lt, rounding_mode="floor")
-            k = start[t] + q - c * Lt                                                   # its entry of one
-            take[lo:hi] = c * n + k
+            c = torch.div(r, Lt, rounding_mode="floor")
+            k = start[t] + r - c * Lt                                                   # its entry of one
+            src[lo:hi] = q[k] * C + c
             col[lo:hi] = one.col[k].long() * self.P + cols[c]
-        return one, row, take, crow.to(itype), col
+        return crow.to(itype), col, src
 
     def matvec(self, v: Tensor, out: Tensor | None = None) -> Tensor:
         """The prior's Gauss-Newton product with ``v [T, P]`` in θ, at the weights and scale of the last
