@@ -88,11 +88,11 @@ def posterior_std(model: Model, layout: Layout, obs: Observations, canon: Tensor
     with torch.no_grad():
         if footprints is not None:
             op = pixel_operator(footprints, T)
-            pred, J = op.linearise(model, layout, canon, groups)
             y = op.y
+            # the blocks alone: the Jacobian's matrices and the gradient are the solve's, not the posterior's
+            pred, w, A = op.information(model, layout, canon, groups,
+                                        lambda p: irls_weights(y - p, loss, delta) / noise_sigma(y, noise).square())
             r = y - pred
-            w = irls_weights(r, loss, delta) / noise_sigma(y, noise).square()
-            _, A = op.normal(J, w, w * r)
             chi_e = (w * r * r).sum(-1)[op.e_pix] * op.e_share
             chi = op.texel_sum(chi_e)
             nres = op.texel_sum(3.0 * op.e_share)

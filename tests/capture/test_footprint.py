@@ -239,6 +239,44 @@ def test_the_two_jacobian_forms_give_the_same_solver_quantities(ggx, model_name)
     assert ops["samples"].affine == (model_name == "lambert") == ops["assembled"].affine
 
 
+@pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert"])
+@pytest.mark.parametrize("form", ["assembled", "samples"])
+def test_information_is_the_linearisations_blocks_bit_for_bit(ggx, monkeypatch, model_name, form):
+    """What the posterior reads — the predictions, their weights and the per-texel blocks — made without placing the
+    values in A and Aᵀ is what linearise then normal give, to the last bit, in either form (in blocks of entries that
+    split pixels: NORMAL_BLOCK 61), at two sets of maps and, for Lambert, from the stored affine linearisation."""
+    import capture.fit.operators as ops
+
+    monkeypatch.setattr(ops, "NORMAL_BLOCK", 61)
+    sc, fp, _, T = ggx if model_name == "ggx-lambert" else _scene("lambert")
+    model, layout = sc.model, Layout.of(sc.model)
+    groups = param_groups(layout)
+    gen = torch.Generator().manual_seed(8)
+
+    def weights(pred):
+        return 1.0 / (fp.radiance.double() - pred).abs().clamp_min(1e-3)
+
+    def both(placed, alone, canon):
+        pred, C = placed.linearise(model, layout, canon, groups)
+        w = weights(pred)
+        _, B = placed.normal(C, w, w)
+        got = alone.information(model, layout, canon, groups, weights)
+        assert torch.equal(got[0], pred) and torch.equal(got[1], w) and torch.equal(got[2], B)
+        assert float(B.abs().max()) > 0
+
+    canons = [torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1 for _ in range(2)]
+    for canon in canons:
+        alone = PixelOperator(fp, T * T, jacobian=form)
+        both(PixelOperator(fp, T * T, jacobian=form), alone, canon)
+        assert alone.jacobian_form == form and alone._pattern is None      # nothing placed: no index arrays made
+    if model_name == "lambert":         # an operator the solve found affine: its stored linearisation
+        placed, alone = PixelOperator(fp, T * T, jacobian=form), PixelOperator(fp, T * T, jacobian=form)
+        placed.linearise(model, layout, canons[0], groups)
+        alone.linearise(model, layout, canons[0], groups)
+        assert alone.affine
+        both(placed, alone, canons[1])
+
+
 @pytest.mark.parametrize("form", ["assembled", "samples", "pixel centres"])
 def test_the_solver_products_in_kept_arrays_are_the_allocating_ones_bit_for_bit(ggx, form):
     """The joint solve's products written into kept arrays — the data term's (either Jacobian form of the pixel
