@@ -30,9 +30,9 @@ __all__ = ["PRIOR_UNIT", "JOINT_ATTEMPTS", "refine_joint"]
 #: (:func:`std_threshold`): each parameter's ``ParamSpec.prior_unit`` (materials/params.py, with the measurement
 #: that chose the albedo's).
 PRIOR_UNIT = {p.name: p.prior_unit for p in CANONICAL.values() if p.prior_unit is not None}
-#: Texels per band of the neighbour prior's energy (whole grid rows) and of its matrix's pattern
-#: (:class:`_SharingPrior`): 3.7 MB per ``[n, 7]`` float64 temporary, which stays in the cache and is not a fresh
-#: mapping at each call.
+#: Texels per band of the neighbour prior's energy and weights (whole grid rows) and of its matrix's pattern
+#: (:class:`_SharingPrior`), on the CPU (:func:`renderer.device.block_size`: larger on a GPU): 3.7 MB per ``[n, 7]``
+#: float64 temporary, which stays in the cache and is not a fresh mapping at each call.
 PRIOR_BAND = 2 ** 16
 
 
@@ -138,7 +138,7 @@ class _SharingPrior:
         fresh ``[T, C]`` arrays, new pages each above glibc's mmap ceiling (1024² maps: 0.36 s a call, in bands
         0.05 s)."""
         H, W = self.H, self.W
-        rows = max(1, PRIOR_BAND // W)
+        rows = max(1, block_size(PRIOR_BAND, canon.device) // W)
         huber = self.delta
         anchored = self.target is not None and self.nu > 0
         e = torch.zeros((), dtype=canon.dtype, device=canon.device)
@@ -177,7 +177,7 @@ class _SharingPrior:
         G, D = g.view(H, W, C), deg.view(H, W, C)
         n_u = self._at_u.shape[0]
         wp = torch.empty(self.pair_i.shape[0], C, dtype=canon.dtype, device=canon.device)     # the edges' weights
-        rows = max(1, PRIOR_BAND // W)
+        rows = max(1, block_size(PRIOR_BAND, canon.device) // W)
         for a in range(0, H, rows):
             b = min(a + rows, H)
             a0, b1 = max(a - 1, 0), min(b + 1, H)
@@ -274,8 +274,9 @@ class _SharingPrior:
         cols = torch.tensor(self.cols, dtype=torch.long, device=dev)
         src = torch.empty(C * n, dtype=itype, device=dev)
         col = torch.empty(C * n, dtype=itype, device=dev)
-        for a in range(0, T, PRIOR_BAND):
-            b = min(a + PRIOR_BAND, T)
+        band = block_size(PRIOR_BAND, dev)
+        for a in range(0, T, band):
+            b = min(a + band, T)
             L, start = lens[a:b], crow1[a:b]
             lo, hi = C * int(crow1[a]), C * int(crow1[b])
             first = C * (start - crow1[a])                  # where each texel's rows start, in the band's places
