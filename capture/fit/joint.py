@@ -104,11 +104,11 @@ class _SharingPrior:
         self.anchor_weight = 0.0
         self.anchor_delta = 1.0
         self.nu = 0.0
-        self.omega_u = None
         self._kept = {}              # matvec's kept working arrays
 
     def set_units(self, units: Mapping[str, float]) -> None:
-        """Replace the units of the parameters in ``units`` (name → unit)."""
+        """Replace the units of the parameters in ``units`` (name → unit): the energy's at once, the product's at the
+        next :meth:`linearise` (its matrix holds the units it was made with)."""
         for i, n in enumerate(self.col_names):
             if n in units:
                 self.thr[i] = float(units[n])
