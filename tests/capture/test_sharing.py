@@ -240,6 +240,40 @@ def _prior_check(prior, canon, layout, skip):
     return grad, diag
 
 
+@pytest.mark.parametrize("shape", [(1, 9), (9, 1), (6, 5), (3, 3)])
+@pytest.mark.parametrize("band", [None, 3])
+@pytest.mark.parametrize("columns", ["every", "materials"])
+def test_sharing_prior_on_thin_grids_in_bands_and_in_theta(shape, band, columns, monkeypatch):
+    """One-row and one-column grids, holes that make bridges, a grid with no observed texel; in one band or in bands
+    of a grid row (3 texels: bands that end inside a row on the wide grid). The gradient and product match the
+    energy's derivatives, and in θ they are the canonical ones scaled by dp (the scale the product's matrix holds)."""
+    if band is not None:
+        monkeypatch.setattr(joint, "PRIOR_BAND", band)
+    model = _ggx_lambert()
+    layout = Layout.of(model)
+    H, W = shape
+    T = H * W
+    g = torch.Generator().manual_seed(H * 10 + W)
+    observed = torch.rand(T, generator=g) > 0.3
+    if shape == (3, 3):
+        observed[:] = False                                     # nothing observed: no edges, the anchor alone
+    names = [s.name for s in layout.specs] if columns == "every" else ["f0", "roughness"]
+    prior = _SharingPrior(layout, names, H, W, observed, delta=1.0)
+    canon = torch.rand(T, layout.P, generator=g, dtype=torch.float64) * 0.004 + 0.3        # every difference quadratic
+    prior.set_anchor(["f0", "roughness"], canon + 0.001, weight=0.1, delta=1.0)
+    prior.mu, prior.nu = 0.7, 0.2
+    _prior_check(prior, canon, layout, skip=[])
+    dp = torch.rand(T, layout.P, generator=g, dtype=torch.float64) + 0.5
+    v = torch.randn(T, layout.P, generator=g, dtype=torch.float64)
+    grad, diag = prior.linearise(canon, dp)
+    mv = prior.matvec(v)
+    grad1, diag1 = prior.linearise(canon, torch.ones_like(dp))
+    torch.testing.assert_close(grad, grad1 * dp, rtol=1e-12, atol=0)
+    torch.testing.assert_close(diag, diag1 * dp * dp, rtol=1e-12, atol=0)
+    torch.testing.assert_close(mv, prior.matvec(v * dp) * dp, rtol=1e-12, atol=1e-300)
+    assert float(diag.abs().max()) > 0                          # (the anchor at least)
+
+
 @pytest.mark.parametrize("band", [None, 7])
 def test_sharing_prior_gradient_and_matvec_match_its_energy(band, monkeypatch):
     # band 7: the energy summed a grid row at a time and the product's pattern made 7 texels at a time (bands that
