@@ -606,6 +606,7 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
     # iteration the loop stops, so 4 attempts (λ ≤ 0.064) ended the refinement before its first step on the
     # small fixed-rig scene
     T = system.B.shape[0]
+    eye = torch.eye(theta.shape[1], dtype=ACC, device=theta.device)
     step = block_size(INVERSE_BLOCK, theta.device)
     rhs = torch.where(system.live[:, None], system.g, torch.zeros_like(system.g))      # (the same for every trial)
     live = _live_blocks(system.live, system.B.shape[1])
@@ -617,9 +618,10 @@ def _damped_step(system: _Normal, theta: Tensor, cost: float, lam: float, radius
         # system's and the inverse (1.6 GB on 2048² maps), new pages at every trial
         for a in range(0, n, step):
             b = min(a + step, n)
-            if live is None:
+            if live is None:            # (every texel's block, identities on those not live)
                 M = system.B[a:b].clone()
                 M.diagonal(dim1=-2, dim2=-1).add_(lam * system.diag[a:b])
+                M[~system.live[a:b]] = eye
             else:
                 M = system.B.index_select(0, live[a:b])
                 M.diagonal(dim1=-2, dim2=-1).add_(lam * system.diag.index_select(0, live[a:b]))

@@ -376,6 +376,16 @@ def test_block_inverses_by_runs_of_texels_are_the_whole_batch_bit_for_bit(ggx, m
     assert joint._live_blocks(Quadratic.live, P) is not None
     monkeypatch.setattr(joint, "_live_blocks", lambda live, P: None)
     assert torch.equal(step()[0], theta_runs)
+    # 90 % live, the others' blocks all zero: every texel's block is inverted, with identities where not live (a
+    # zero block would make the preconditioner NaN); the same step as the live blocks alone
+    Quadratic.live = torch.arange(T) % 10 != 0
+    Quadratic.B = Quadratic.B * Quadratic.live[:, None, None]
+    Quadratic.diag = Quadratic.diag * Quadratic.live[:, None]
+    monkeypatch.undo()
+    assert joint._live_blocks(Quadratic.live, P) is None
+    theta_all = step()[0]
+    monkeypatch.setattr(joint, "_live_blocks", lambda live, P: torch.nonzero(live).reshape(-1))
+    assert torch.equal(step()[0], theta_all) and bool(torch.isfinite(theta_all).all()) and theta_all.abs().max() > 0
 
 
 def test_auto_keeps_the_jacobian_per_sample_when_memory_is_short(ggx, monkeypatch):
