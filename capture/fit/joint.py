@@ -132,26 +132,38 @@ class _SharingPrior:
         out[:, self.cols] = x
         return out
 
+    def _band_rows(self, device: torch.device) -> int:
+        """Grid rows per band of :meth:`energy_tensor` and :meth:`linearise` (:data:`PRIOR_BAND` texels)."""
+        return max(1, block_size(PRIOR_BAND, device) // self.W)
+
+    def _band(self, canon: Tensor, a: int, b: int) -> tuple[Tensor, Tensor, slice, slice]:
+        """The differences in units of the grid rows ``a … b − 1`` of ``canon [T, P]``: ``(du, dv, top, bottom)`` —
+        along u ``[b − a, W − 1, C]``; along v over the edges ``(r, r + 1)`` from the row before the band to the last
+        that stays in the grid (the rows either side: the edges across the band's borders); and the slices of ``dv``
+        whose edges have their upper texel in the band (``top``) and their lower one (``bottom``)."""
+        H, W = self.H, self.W
+        a0, b1 = max(a - 1, 0), min(b + 1, H)
+        c = (self._columns(canon[a0 * W:b1 * W]) / self.thr).reshape(b1 - a0, W, -1)
+        du = c[a - a0:b - a0, :-1] - c[a - a0:b - a0, 1:]
+        return du, c[:-1] - c[1:], slice(a - a0, min(b, H - 1) - a0), slice(max(a, 1) - 1 - a0, b - 1 - a0)
+
     def energy_tensor(self, canon: Tensor) -> Tensor:
         """The prior's energy at ``canon`` ``[T, P]`` as a (differentiable) scalar tensor, summed a band of
         :data:`PRIOR_BAND` texels' rows at a time: whole, each trial's differences and their costs were a dozen
         fresh ``[T, C]`` arrays, new pages each above glibc's mmap ceiling (1024² maps: 0.36 s a call, in bands
         0.05 s)."""
         H, W = self.H, self.W
-        rows = max(1, block_size(PRIOR_BAND, canon.device) // W)
+        rows = self._band_rows(canon.device)
         huber = self.delta
         anchored = self.target is not None and self.nu > 0
         e = torch.zeros((), dtype=canon.dtype, device=canon.device)
         for a in range(0, H, rows):
             b = min(a + rows, H)
-            band = self._columns(canon[a * W:min(b + 1, H) * W])            # (with the next row: the v edges)
-            c = (band / self.thr).reshape(-1, W, band.shape[-1])
-            du = c[:b - a, :-1] - c[:b - a, 1:]
-            dv = c[:-1] - c[1:]                                             # (b − a rows, one fewer in the last band)
+            du, dv, top, _ = self._band(canon, a, b)
             e = e + self.mu * ((robust_rho(du, "huber", huber) * self.edge_u[a:b]).sum()
-                               + (robust_rho(dv, "huber", huber) * self.edge_v[a:a + dv.shape[0]]).sum())
+                               + (robust_rho(dv[top], "huber", huber) * self.edge_v[a:min(b, H - 1)]).sum())
             if anchored:
-                da = (band[:(b - a) * W] - self.target[a * W:b * W]) / self.thr * self.anchored
+                da = (self._columns(canon[a * W:b * W]) - self.target[a * W:b * W]) / self.thr * self.anchored
                 e = e + self.nu * robust_rho(da, "huber", self.anchor_delta).sum()
         if self.bridge_i.shape[0]:
             db = self._columns(canon[self.bridge_i]) / self.thr - self._columns(canon[self.bridge_j]) / self.thr
@@ -177,22 +189,18 @@ class _SharingPrior:
         G, D = g.view(H, W, C), deg.view(H, W, C)
         n_u = self._at_u.shape[0]
         wp = torch.empty(self.pair_i.shape[0], C, dtype=canon.dtype, device=canon.device)     # the edges' weights
-        rows = max(1, block_size(PRIOR_BAND, canon.device) // W)
+        rows = self._band_rows(canon.device)
         for a in range(0, H, rows):
             b = min(a + rows, H)
-            a0, b1 = max(a - 1, 0), min(b + 1, H)
-            c = (self._columns(canon[a0 * W:b1 * W]) / self.thr).reshape(b1 - a0, W, C)
-            du = c[a - a0:b - a0, :-1] - c[a - a0:b - a0, 1:]                  # the band's edges along u
+            du, dv, top, bottom = self._band(canon, a, b)
             wu = self.mu * irls_weights(du, "huber", self.delta) * self.edge_u[a:b]
             fu = wu * du
             G[a:b, :-1] -= fu
             G[a:b, 1:] += fu
             D[a:b, :-1] += wu
             D[a:b, 1:] += wu
-            dv = c[:-1] - c[1:]                                                 # edges (r, r + 1), r = a0 … b1 − 2
-            wv = self.mu * irls_weights(dv, "huber", self.delta) * self.edge_v[a0:b1 - 1]
+            wv = self.mu * irls_weights(dv, "huber", self.delta) * self.edge_v[max(a - 1, 0):min(b, H - 1)]
             fv = wv * dv
-            top, bottom = slice(a - a0, min(b, H - 1) - a0), slice(max(a, 1) - 1 - a0, b - 1 - a0)
             G[a:min(b, H - 1)] -= fv[top]                                      # the band's texels above an edge
             D[a:min(b, H - 1)] += wv[top]
             G[max(a, 1):b] += fv[bottom]                                        # … and below one
@@ -305,7 +313,7 @@ class _SharingPrior:
         acc = kept_array(self._kept, "acc", (T, len(self.cols)), v.dtype, v.device)
         torch.mv(self.lap, x, out=acc.view(-1))
         if out is None:
-            return self._full(acc.clone())
+            return self._full(acc)                  # (a fresh [T, P] array: acc is kept)
         out.zero_()
         out[:, self.cols] = acc
         return out
