@@ -379,6 +379,7 @@ def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float) -
     history = []
     if steps > 0:
         theta, finfo = fit.footprint_steps(theta, steps, share, opts.anchor_weight if share else 0.0, footprints)
+        footprints.release()
         info.update(_footprint_info(finfo))
         history = list(finfo["joint_history"])
     return finalize(model, layout, obs, theta, fit.groups, loss=opts.loss, delta=fit.delta,
@@ -474,6 +475,7 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
         release_memory()                                # (what the pixel-centre stages freed, before the largest)
         footprints = pixel_operator(footprints, T, opts.jacobian, opts.memory_budget_bytes)  # once, for all stages
         theta, finfo = _footprint_stage(fit, theta, footprints, share, sharing)
+        footprints.release()                            # (the posterior needs no matrices)
         if finfo is not None:
             info.update(_footprint_info(finfo))
             history.append(finfo["joint_history"][-1])

@@ -383,9 +383,9 @@ class _JointData:
         """The data cost of θ ``[T, P]``."""
         with torch.no_grad():
             canon = self.layout.canonical(th)
-            if self.pix is not None:
-                return float(robust_rho(self.y - self.pix.predict(self.model, self.layout, canon), self.loss,
-                                        self.delta).sum())
+            if self.pix is not None:    # (the residual in place of the prediction, a new array of the pixels')
+                pred = self.pix.predict(self.model, self.layout, canon)
+                return float(robust_rho(torch.sub(self.y, pred, out=pred), self.loss, self.delta).sum())
             pred = self.obs.predict(self.model, self.layout.split(self.gather(canon).to(self.obs.dtype)))
             return weighted_cost(self.obs, pred, self.loss, self.delta)
 
@@ -416,7 +416,9 @@ class _JointData:
         if self.pix is not None:
             if out is None:
                 return self.pix.apply_t(J, w * self.pix.apply(J, v * dp)) * dp
-            y = self.pix.apply(J, torch.mul(v, dp, out=out))                # (out holds v·dp until J's product)
+            # (out holds v·dp until J's product; the pixel-sized product in a kept array)
+            y = self.pix.apply(J, torch.mul(v, dp, out=out),
+                               out=kept_array(self._kept, "pixels", (self.pix.R, 3), v.dtype, v.device))
             return self.pix.apply_t(J, y.mul_(w), out=out).mul_(dp)
         # J_sᵀ W_s J_s u_s as two batched products (bmm: 5.4 ms against 9.4 ms for einsum, S = 204 000), a block of
         # samples at a time: the samples' reads and radiance changes whole were 0.13 GB of fresh pages per product

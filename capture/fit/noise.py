@@ -35,9 +35,9 @@ def check_loss(loss: str) -> str:
 def robust_rho(r: Tensor, loss: str, delta: float) -> Tensor:
     """Per-residual cost: l2 ``r²``; huber ``r²`` for |r| ≤ δ else ``2δ|r| − δ²``; l1 ``2δ|r|``
     (scaled so that the three agree to first order at |r| = δ)."""
-    a = r.abs()
     if loss == "l2":
         return r * r
+    a = r.abs()
     if loss == "huber":
         return torch.where(a <= delta, r * r, 2 * delta * a - delta * delta)
     return 2 * delta * a

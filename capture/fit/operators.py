@@ -4,6 +4,7 @@ pixel footprints (pixels × texels, :class:`PixelOperator`)."""
 from __future__ import annotations
 
 import warnings
+import weakref
 from collections.abc import Callable, Iterator
 from typing import NamedTuple
 
@@ -375,6 +376,8 @@ class PixelOperator:
         self.jacobian_form = None       # the form used, decided at the first linearisation
         self._gather_t = None           # gather_op's transpose, made for the first product of the samples' form
         self._kept = {}                 # the products' texel-sized conversions (_scratch)
+        self._values = {}               # the assembled Jacobian's value arrays, reused by the next (_value_arrays)
+        self._issued = ()               # weak references to the last assembled Jacobian's two matrices
 
     def observed(self) -> Tensor:
         """``[T]`` bool: texels some kept pixel reads with a positive weight."""
@@ -475,26 +478,27 @@ class PixelOperator:
         albedo and f0 act on their own channel), pair-major (:class:`SampleJacobian`'s layout, which the assembled
         form reads too: made sample-major, the samples' form took a transposed copy, 0.19 GB more on 32 × 512²
         photos), block by block (:func:`jacobian_blocks`) so that neither the whole ``[S, 3, P]`` Jacobian nor the
-        whole autograd graph is ever held."""
-        so = self.fp.samples
-        phi = self.gather_op @ canon.to(self.gather_op.dtype)
-        S, P = phi.shape
-        pred = torch.zeros(self.R, 3, dtype=ACC, device=phi.device)
+        whole autograd graph is ever held; the samples' parameters are read a block at a time too (whole, 0.15 GB of
+        new pages a linearisation on 32 × 512² photos). (``JcT`` is made afresh: kept for the next call, its 0.19 GB
+        there would be held through the steps' products, whose peak it raised by as much.)"""
+        x = canon.to(self.gather_op.dtype)
+        S, P = self.gather_op.shape[0], x.shape[1]
+        dev = x.device
+        pred = torch.zeros(self.R, 3, dtype=ACC, device=dev)
         # the union of the blocks' pairs, in their row-major order; a block that lacks some of them has zeros there.
         # Each block's values go straight into JcT, which grows (a copy) when a block brings a pair the earlier ones
         # lacked: keeping the blocks' values until all were seen held a second one (0.38 GB on 32 × 512² photos)
-        mask = torch.zeros(3, P, dtype=torch.bool, device=phi.device)
+        mask = torch.zeros(3, P, dtype=torch.bool, device=dev)
         # the values in the precision the model is evaluated in (float32 gradients are exact in it): half the bytes
         # of float64 at the linearisation's peak (0.38 GB on 32 × 512² photos)
         jdt = self.gather_op.dtype
         JcT = where = None                              # where: each kept pair's row in JcT
-        for a, b, pb, Jb in jacobian_blocks(model, layout, so, phi, groups, canonical=True,
-                                              block=block_size(JACOBIAN_BLOCK, phi.device)):
+        for a, b, pb, Jb in self._jacobian_blocks(model, layout, x, groups):
             self._add_to_pixels(pred, pb, a, b)
             m = (Jb != 0).any(0)
             if JcT is None or bool((m & ~mask).any()):
                 union = mask | m
-                grown = torch.zeros(int(union.sum()), S, dtype=jdt, device=phi.device)
+                grown = torch.zeros(int(union.sum()), S, dtype=jdt, device=dev)
                 new_where = torch.cumsum(union.reshape(-1), 0).reshape(3, P) - 1
                 if JcT is not None:
                     grown[new_where[mask]] = JcT
@@ -502,10 +506,20 @@ class PixelOperator:
             cs, ps = torch.nonzero(m, as_tuple=True)
             JcT[where[m], a:b] = Jb[:, cs, ps].t().to(jdt)
             del Jb
-        del phi
         if JcT is None:                                 # no samples
             JcT = torch.zeros(0, S, dtype=jdt, device=pred.device)
         return pred, JcT, mask
+
+    def _jacobian_blocks(self, model: Model, layout: Layout, x: Tensor,
+                         groups) -> Iterator[tuple[int, int, Tensor, Tensor]]:
+        """:func:`jacobian_blocks` of the samples at texel values ``x [T, P]`` (in ``gather_op``'s precision), each
+        block's parameters read on its own (:meth:`_read`: the rows of the whole product, bit for bit)."""
+        so = self.fp.samples
+        step = block_size(JACOBIAN_BLOCK, x.device)
+        for a in range(0, max(so.n_samples, 1), step):
+            b = min(a + step, so.n_samples)
+            yield from jacobian_blocks(model, layout, so, self._read(x, a, b), groups, canonical=True, block=step,
+                                       start=a)
 
     def _form(self, k: int, device: torch.device) -> str:
         """The Jacobian's form (:data:`JACOBIAN_FORMS`), decided once, at the first linearisation, for ``k`` kept
@@ -583,15 +597,37 @@ class PixelOperator:
         # the values in the precision the model was evaluated in (JcT's): float32 evaluations make float32 values, whose
         # products read half the bytes (with 32-bit indices 5.2 against 7.7 ms per product of 4.4 M non-zeros)
         vdt = JcT.dtype
+        a_vals, t_vals = self._value_arrays(E * k, vdt, dev)
         # (summed in float64 from the float32 samples: the sums' rounding moved the ill-conditioned fits — one view
         # of the stress scene, roughness on observable texels 0.0020 → 0.0041)
-        a_vals = by_pix.scatter(lambda a, b: self._entry_values(JcT, a, b, ACC),
-                                torch.empty(E * k, dtype=vdt, device=dev))
+        by_pix.scatter(lambda a, b: self._entry_values(JcT, a, b, ACC), a_vals)
         perm = by_tex.order
-        t_vals = by_tex.scatter(lambda a, b: by_pix.take(a_vals, perm[a:b]),
-                                torch.empty(E * k, dtype=vdt, device=dev))
-        return PixelJacobian(cs, ps, csr_matrix(*a_idx, a_vals, (3 * self.R, P * self.T)),
-                             csr_matrix(*t_idx, t_vals, (P * self.T, 3 * self.R)))
+        by_tex.scatter(lambda a, b: by_pix.take(a_vals, perm[a:b]), t_vals)
+        J = PixelJacobian(cs, ps, csr_matrix(*a_idx, a_vals, (3 * self.R, P * self.T)),
+                          csr_matrix(*t_idx, t_vals, (P * self.T, 3 * self.R)))
+        self._issued = (weakref.ref(J.A), weakref.ref(J.At))
+        return J
+
+    def _value_arrays(self, n: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+        """The ``[n]`` value arrays of a new assembled Jacobian's ``A`` and ``At``: the last one's, overwritten in
+        place, once nothing holds that Jacobian any more (the solver frees each step's before the next
+        linearisation), else new ones. Fresh, each is new pages the kernel zeroes at first touch: on 32 × 512² photos
+        (150 M values each, 0.6 GB) placing them took ~1 s more per linearisation than in kept arrays, and the
+        footprint steps 137 → 121 s."""
+        if any(ref() is not None for ref in self._issued):
+            self._values = {}           # (the held Jacobian's arrays stay its holder's)
+        self._issued = ()
+        return (kept_array(self._values, "A", (n,), dtype, device),
+                kept_array(self._values, "At", (n,), dtype, device))
+
+    def release(self) -> None:
+        """Free what only further linearisations would use — the kept value arrays and, unless the model is affine
+        (whose kept Jacobian :meth:`normal` reads through them), the matrices' index arrays — once the steps are
+        done (1.2 GB each on 32 × 512² photos). A later :meth:`linearise` makes them again. The index arrays stay
+        while a Jacobian made with them is still held."""
+        self._values, self._kept = {}, {}
+        if self._affine is None and not any(ref() is not None for ref in self._issued):
+            self._pattern, self._issued = None, ()
 
     def normal(self, J: PixelJacobian | SampleJacobian, w: Tensor, wr: Tensor) -> tuple[Tensor, Tensor]:
         """``(Jᵀ W r [T, P], blocks Σ_i C_itᵀ W_i C_it [T, P, P])`` with residual weights ``w [R, 3]`` and
@@ -652,26 +688,38 @@ class PixelOperator:
         B = torch.zeros(self.T, P * P, dtype=terms.dtype, device=terms.device).index_add_(1, pq, terms)
         return B.index_add_(1, qp[off], terms[:, off]).reshape(self.T, P, P)
 
-    def apply(self, J: PixelJacobian | SampleJacobian, u: Tensor) -> Tensor:
-        """``J u`` ``[R, 3]`` for texel updates ``u [T, P]``."""
+    def apply(self, J: PixelJacobian | SampleJacobian, u: Tensor, out: Tensor | None = None) -> Tensor:
+        """``J u`` ``[R, 3]`` for texel updates ``u [T, P]``, into ``out [R, 3]`` (of ``u``'s dtype) when given: a
+        solver's product then makes no pixel-sized array (32 × 512² photos: its float32 result and float64 copy, 58
+        MB, had been new pages at each of ~400 products, 4.4 s of the kernel's time)."""
         if isinstance(J, SampleJacobian):
             # block by block of samples: their changes and radiance changes whole were 0.34 GB of fresh pages per
             # product on 32 × 512² photos (5.3 M samples)
             x = u if u.dtype == self.gather_op.dtype else \
                 self._scratch(u.numel(), self.gather_op.dtype, u.device).view(u.shape).copy_(u)
-            out = torch.zeros(self.R, 3, dtype=ACC, device=u.device)
+            acc = out if out is not None and out.dtype == ACC else torch.empty(self.R, 3, dtype=ACC, device=u.device)
+            acc.zero_()
             pairs = list(zip(J.cs.tolist(), J.ps.tolist(), strict=True))
             for a, b in self._sample_blocks(u.device):
                 d = self._read(x, a, b)                                             # [n, P] the samples' changes
                 q = torch.zeros(b - a, 3, dtype=d.dtype, device=d.device)
                 for j, (c, p) in enumerate(pairs):
                     q[:, c].addcmul_(J.JcT[j, a:b], d[:, p])
-                self._add_to_pixels(out, q, a, b)
-            return out.to(u.dtype)
+                self._add_to_pixels(acc, q, a, b)
+            if out is None:
+                return acc.to(u.dtype)
+            return acc if acc is out else out.copy_(acc)
         x = u.reshape(-1)
         if x.dtype != J.A.dtype:                    # (converted into the kept scratch array, not a fresh one)
             x = self._scratch(x.numel(), J.A.dtype, x.device).copy_(x)
-        return torch.mv(J.A, x).to(u.dtype).reshape(self.R, 3)
+        if out is None:
+            return torch.mv(J.A, x).to(u.dtype).reshape(self.R, 3)
+        if out.dtype == J.A.dtype:
+            torch.mv(J.A, x, out=out.view(-1))
+            return out
+        res = kept_array(self._kept, "pixel_scratch", (3 * self.R,), J.A.dtype, x.device)
+        out.view(-1).copy_(torch.mv(J.A, x, out=res))
+        return out
 
     def _scratch(self, n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
         """A ``[n]`` array of ``dtype`` kept for the products' texel-sized conversions (:meth:`apply`,

@@ -100,14 +100,19 @@ SYSTEM_BLOCK = 1 << 16
 
 
 def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups, canonical: bool = False,
-                    block: int | None = None) -> Iterator[tuple[int, int, Tensor, Tensor]]:
+                    block: int | None = None, start: int = 0) -> Iterator[tuple[int, int, Tensor, Tensor]]:
     """``(start, stop, pred [n, 3], J [n, 3, P])`` for blocks of ``block`` samples of :func:`jacobian`: the
     same values, with the autograd graph of one block alive at a time (default :data:`JACOBIAN_BLOCK` on the CPU,
-    :func:`renderer.device.block_size` of it on a GPU)."""
+    :func:`renderer.device.block_size` of it on a GPU). ``phi`` may hold only the samples ``start …
+    start + len(phi) − 1`` of ``obs`` (a caller reading the samples' parameters a block at a time); the yielded
+    ``start, stop`` are indices of ``obs``'s samples."""
     if block is None:
         block = block_size(JACOBIAN_BLOCK, phi.device)
     if block < 1:
         raise SolverError(f"block must be a positive number of samples, got {block!r}")
+    if not 0 <= start <= obs.n_samples - phi.shape[0]:
+        raise SolverError(f"start must place the {phi.shape[0]} samples of phi among the {obs.n_samples} of the "
+                          f"observations, got {start!r}")
     S, P = phi.shape
     unpack = layout.split if canonical else layout.unpack
     cols = sorted({c for cs in groups for c in cs})
@@ -116,7 +121,7 @@ def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor
         b = min(a + block, S)
         with torch.enable_grad():
             x = phi[a:b].detach().to(obs.dtype).requires_grad_(bool(cols))
-            pred = obs.predict_rows(model, unpack(x), a, b)
+            pred = obs.predict_rows(model, unpack(x), start + a, start + b)
             if cols and pred.requires_grad:
                 # each channel's gradient copied whole into its row (a plain slice), the frozen columns zeroed
                 # after: writing the kept columns through an index list took 1.8 s of 75 on 32 × 256² photos
@@ -128,7 +133,7 @@ def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor
                     J[:, :, frozen] = 0.0
             else:
                 J = torch.zeros(b - a, 3, P, dtype=ACC, device=phi.device)
-        yield a, b, pred.detach().to(ACC), J
+        yield start + a, start + b, pred.detach().to(ACC), J
 
 
 def jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups,

@@ -434,6 +434,72 @@ def test_auto_keeps_the_jacobian_per_sample_when_memory_is_short(ggx, monkeypatc
         FitOptions(jacobian="sparse")
 
 
+def test_the_next_linearisation_reuses_a_dropped_jacobians_values_and_never_a_held_ones(ggx):
+    """The assembled Jacobian's two value arrays are overwritten in place by the next linearisation once nothing
+    holds the last Jacobian (new pages cost ~1 s a linearisation on 32 × 512² photos), and left alone while
+    something does; either way each Jacobian equals one made by a fresh operator, bit for bit. ``release`` frees
+    the kept arrays and the index arrays, and a later linearisation makes them again."""
+    sc, fp, _, T = ggx
+    model, layout = sc.model, Layout.of(sc.model)
+    groups = param_groups(layout)
+    gen = torch.Generator().manual_seed(5)
+    canons = [torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1 for _ in range(3)]
+
+    def fresh(canon):
+        J = PixelOperator(fp, T * T, "assembled").linearise(model, layout, canon, groups)[1]
+        return J.A.values().clone(), J.At.values().clone()
+
+    def same(J, expected):
+        return all(torch.equal(m.values(), e) for m, e in zip((J.A, J.At), expected, strict=True))
+
+    expected = [fresh(c) for c in canons]
+    op = PixelOperator(fp, T * T, "assembled")
+    J = op.linearise(model, layout, canons[0], groups)[1]
+    ptrs = (J.A.values().data_ptr(), J.At.values().data_ptr())
+    assert same(J, expected[0])
+    del J                                               # dropped: its arrays take the next one's values
+    J = op.linearise(model, layout, canons[1], groups)[1]
+    assert (J.A.values().data_ptr(), J.At.values().data_ptr()) == ptrs and same(J, expected[1])
+    held = J                                            # held: the next one gets arrays of its own
+    J = op.linearise(model, layout, canons[2], groups)[1]
+    assert J.A.values().data_ptr() not in ptrs and J.At.values().data_ptr() not in ptrs
+    assert same(held, expected[1]) and same(J, expected[2])
+    op.release()                                        # (a Jacobian is held: the index arrays stay)
+    assert op._values == {} and op._pattern is not None
+    del held, J
+    op.release()
+    assert op._pattern is None and op._issued == ()
+    J = op.linearise(model, layout, canons[0], groups)[1]
+    assert same(J, expected[0])
+
+
+def test_jacobian_blocks_of_a_run_of_samples_are_the_whole_ones_bit_for_bit(ggx):
+    """The samples' parameters read a block at a time (``start``: the run's place among the samples) give the
+    Jacobian blocks of the whole read, bit for bit, with the samples' indices; a run that does not fit is named."""
+    from capture.fit.layout import SolverError
+    from capture.fit.texel import jacobian_blocks
+
+    sc, fp, _, T = ggx
+    layout = Layout.of(sc.model)
+    so, groups = fp.samples, param_groups(layout)
+    canon = torch.rand(T * T, layout.P, generator=torch.Generator().manual_seed(9)) * 0.8 + 0.1
+    op = PixelOperator(fp, T * T)
+    phi = op.gather_op @ canon
+    whole = list(jacobian_blocks(sc.model, layout, so, phi, groups, canonical=True, block=257))
+    a, b = 257 * 3, 257 * 7 + 5                                         # (a run whose last block is ragged)
+    run = list(jacobian_blocks(sc.model, layout, so, phi[a:b].clone(), groups, canonical=True, block=257, start=a))
+    assert [(x, y) for x, y, *_ in run] == [(x, min(x + 257, b)) for x in range(a, b, 257)]
+    for x, y, pb, Jb in run:
+        i = (x - a) // 257 + 3
+        ref = whole[i] if y - x == 257 else None
+        if ref is not None:
+            assert ref[0] == x and torch.equal(ref[2], pb) and torch.equal(ref[3], Jb)
+        else:                                                           # the ragged end: rows of the whole's block
+            assert torch.equal(whole[i][2][: y - x], pb) and torch.equal(whole[i][3][: y - x], Jb)
+    with pytest.raises(SolverError, match="start must place"):
+        next(jacobian_blocks(sc.model, layout, so, phi[:10], groups, start=so.n_samples - 5))
+
+
 def test_the_gather_operator_shares_the_taps_storage(ggx):
     """The texels → samples operator is the footprints' own taps (sample-major): its column indices and values are
     the taps' tensors, not copies, and it reads the maps as the taps do."""
