@@ -32,11 +32,12 @@ def check_loss(loss: str) -> str:
     return loss
 
 
-def robust_rho(r: Tensor, loss: str, delta: float) -> Tensor:
+def robust_rho(r: Tensor, loss: str, delta: float, out: Tensor | None = None) -> Tensor:
     """Per-residual cost: l2 ``r²``; huber ``r²`` for |r| ≤ δ else ``2δ|r| − δ²``; l1 ``2δ|r|``
-    (scaled so that the three agree to first order at |r| = δ)."""
+    (scaled so that the three agree to first order at |r| = δ). ``out``: l2's ``r²`` is written there (it may be
+    ``r`` itself); the others make a new array."""
     if loss == "l2":
-        return r * r
+        return r * r if out is None else torch.mul(r, r, out=out)
     a = r.abs()
     if loss == "huber":
         return torch.where(a <= delta, r * r, 2 * delta * a - delta * delta)

@@ -399,13 +399,16 @@ class PixelOperator:
         """True once :meth:`linearise` found the model affine in its parameters (its Jacobian is then reused)."""
         return self._affine is not None
 
-    def predict(self, model: Model, layout: Layout, canon: Tensor) -> Tensor:
+    def predict(self, model: Model, layout: Layout, canon: Tensor, out: Tensor | None = None) -> Tensor:
         """Pixel predictions ``[R, 3]`` of canonical texel parameters ``canon [T, P]`` (for a model found affine
-        in its parameters, :meth:`linearise`, from the stored linearisation without evaluating the model)."""
+        in its parameters, :meth:`linearise`, from the stored linearisation without evaluating the model), into
+        ``out [R, 3]`` (float64) when given."""
         if self._affine is not None:
             canon0, pred0, J = self._affine
-            return pred0 + self.apply(J, canon - canon0)
-        return self._pixel_radiance(model, layout, canon)
+            if out is None:
+                return pred0 + self.apply(J, canon - canon0)
+            return torch.add(pred0, self.apply(J, canon - canon0, out=out), out=out)
+        return self._pixel_radiance(model, layout, canon, out)
 
     def _sample_blocks(self, device: torch.device) -> Iterator[tuple[int, int]]:
         """``(a, b)``: the blocks of samples ``a … b − 1`` of :data:`JACOBIAN_BLOCK` that the evaluations and the
@@ -425,15 +428,16 @@ class PixelOperator:
         the pixels' rows would add them), with no pixels × samples matrix kept (0.07 GB on 32 × 512² photos)."""
         out.index_add_(0, self.fp.group[a:b], x.to(out.dtype) * self.fp.share[a:b, None].to(out.dtype))
 
-    def _pixel_radiance(self, model: Model, layout: Layout, canon: Tensor) -> Tensor:
-        """``[R, 3]`` the pixels' radiance at canonical texel parameters ``canon [T, P]``: the samples evaluated and
+    def _pixel_radiance(self, model: Model, layout: Layout, canon: Tensor, out: Tensor | None = None) -> Tensor:
+        """``[R, 3]`` the pixels' radiance at canonical texel parameters ``canon [T, P]`` (into ``out`` when given):
+        the samples evaluated and
         summed into their pixels in blocks of :data:`JACOBIAN_BLOCK` samples, so that neither the model's
         temporaries nor the samples' reads and radiance are ever whole (32 × 256² photos, 2.2 M samples, GGX +
         Lambert: the model's temporaries whole took 0.44–0.64 GB, in blocks 0.12–0.25 GB in the same time; 32 ×
         512², 5.3 M samples, the reads and radiance whole 0.27 GB more)."""
         so = self.fp.samples
         x = canon.to(self.gather_op.dtype)
-        out = torch.zeros(self.R, 3, dtype=ACC, device=canon.device)
+        out = torch.zeros(self.R, 3, dtype=ACC, device=canon.device) if out is None else out.zero_()
         with torch.no_grad():
             for a, b in self._sample_blocks(canon.device):
                 rad = so.predict_rows(model, layout.split(self._read(x, a, b).to(so.dtype)), a, b)
@@ -633,11 +637,12 @@ class PixelOperator:
         """``(Jᵀ W r [T, P], blocks Σ_i C_itᵀ W_i C_it [T, P, P])`` with residual weights ``w [R, 3]`` and
         ``wr = w·r [R, 3]``. The blocks sum only the products of kept values on the same channel (GGX + Lambert:
         27 of the 147 of the dense 3 × 7 blocks), whose values are read back from ``A`` (or, for a
-        :class:`SampleJacobian`, made from the samples' values block by block)."""
+        :class:`SampleJacobian`, made from the samples' values block by block). The blocks are the caller's to
+        change in place."""
         cached = self._blocks
-        # the same Jacobian (an affine model's) with the same weights (L2: all ones) has the same blocks
+        # the same Jacobian (an affine model's) with the same weights (L2: all ones) has the same blocks (a copy)
         if cached is not None and cached[0] is J and torch.equal(cached[1], w):
-            return self.apply_t(J, wr), cached[2]
+            return self.apply_t(J, wr), cached[2].clone()
         if isinstance(J, SampleJacobian):       # the entries' values made from the samples', a run of them per block
             B = self._block_sums(J.cs, J.ps, J.n_params, w, lambda a, b: self._entry_values(J.JcT, a, b).to(ACC))
         else:                                   # … or read back from A
@@ -645,7 +650,8 @@ class PixelOperator:
             B = self._block_sums(J.cs, J.ps, self._n_params(J), w,
                                  lambda a, b: by_pix.take(vals, torch.arange(a, b, device=w.device)).to(ACC))
         if self._affine is not None:    # (only an affine model's Jacobian comes back; others' blocks would be held
-            self._blocks = (J, w, B)    # for nothing until the next linearisation)
+            self._blocks = (J, w, B)    # for nothing until the next linearisation; the caller gets a copy)
+            return self.apply_t(J, wr), B.clone()
         return self.apply_t(J, wr), B
 
     def information(self, model: Model, layout: Layout, canon: Tensor, groups,

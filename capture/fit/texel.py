@@ -137,7 +137,7 @@ def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor
 
 
 def jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups,
-             canonical: bool = False) -> tuple[Tensor, Tensor]:
+             canonical: bool = False, out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """Prediction ``[S, 3]`` and Jacobian ``[S, 3, P]`` wrt per-sample θ ``phi [S, P]`` by reverse-mode AD.
 
     A sample's prediction depends only on its own parameters, so the gradient of ``Σ_s pred_sc`` with
@@ -148,11 +148,18 @@ def jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, group
     (dual tensor) pass per group — in torch 2.13 binary ops on dual tensors run Python reference
     implementations, and the first one imports ``torch._dynamo`` (~1 s per process).
 
-    ``canonical=True``: ``phi`` holds canonical values and the Jacobian is with respect to them.
+    ``canonical=True``: ``phi`` holds canonical values and the Jacobian is with respect to them. ``out``: float64
+    arrays ``([S, 3], [S, 3, P])`` to write them into (every row is written).
     """
     S, P = phi.shape
-    pred = torch.zeros(S, 3, dtype=ACC, device=phi.device)
-    J = torch.zeros(S, 3, P, dtype=ACC, device=phi.device)
+    if out is None:
+        pred = torch.zeros(S, 3, dtype=ACC, device=phi.device)
+        J = torch.zeros(S, 3, P, dtype=ACC, device=phi.device)
+    else:
+        pred, J = out
+        if tuple(pred.shape) != (S, 3) or tuple(J.shape) != (S, 3, P) or pred.dtype != ACC or J.dtype != ACC:
+            raise SolverError(f"out must be float64 arrays of shapes ({S}, 3) and ({S}, 3, {P}), got "
+                              f"{tuple(pred.shape)} {pred.dtype} and {tuple(J.shape)} {J.dtype}")
     for a, b, pb, Jb in jacobian_blocks(model, layout, obs, phi, groups, canonical):
         pred[a:b], J[a:b] = pb, Jb
     return pred, J

@@ -8,7 +8,7 @@ import torch
 
 import materials
 from capture.fit import Layout, solve_fast
-from capture.fit.layout import param_groups
+from capture.fit.layout import SolverError, param_groups
 from capture.fit.operators import ASSEMBLED_SHARE, PixelOperator, SampleJacobian, pixel_operator
 from capture.footprint import (
     FOOTPRINT_MAX,
@@ -476,7 +476,6 @@ def test_the_next_linearisation_reuses_a_dropped_jacobians_values_and_never_a_he
 def test_jacobian_blocks_of_a_run_of_samples_are_the_whole_ones_bit_for_bit(ggx):
     """The samples' parameters read a block at a time (``start``: the run's place among the samples) give the
     Jacobian blocks of the whole read, bit for bit, with the samples' indices; a run that does not fit is named."""
-    from capture.fit.layout import SolverError
     from capture.fit.texel import jacobian_blocks
 
     sc, fp, _, T = ggx
@@ -498,6 +497,37 @@ def test_jacobian_blocks_of_a_run_of_samples_are_the_whole_ones_bit_for_bit(ggx)
             assert torch.equal(whole[i][2][: y - x], pb) and torch.equal(whole[i][3][: y - x], Jb)
     with pytest.raises(SolverError, match="start must place"):
         next(jacobian_blocks(sc.model, layout, so, phi[:10], groups, start=so.n_samples - 5))
+
+
+def test_the_pixel_centre_linearisation_reuses_a_dropped_jacobians_arrays_and_never_a_held_ones(ggx):
+    """The pixel-centre joint steps' Jacobian ``[S, 3, P]`` is written into the last one's arrays once nothing
+    holds it, and into new ones while something does; each equals :func:`jacobian`'s own, bit for bit."""
+    from capture.fit.joint import _JointData
+    from capture.fit.texel import jacobian
+
+    sc, _, obs, T = ggx
+    model, layout = sc.model, Layout.of(sc.model)
+    groups = param_groups(layout)
+    data = _JointData(model, obs, layout, groups, T * T, sampling="bilinear", footprints=None, loss="l2", delta=1.0)
+    gen = torch.Generator().manual_seed(4)
+    canons = [torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1 for _ in range(3)]
+    expected = [jacobian(model, layout, obs, data.gather(c), groups, canonical=True) for c in canons]
+
+    def same(got, i):
+        r, J = got
+        return torch.equal(r, data.y - expected[i][0]) and torch.equal(J, expected[i][1])
+
+    got = data.linearise(canons[0])
+    ptr = got[1].data_ptr()
+    assert same(got, 0)
+    del got                                             # dropped: the next one is written over it
+    got = data.linearise(canons[1])
+    assert got[1].data_ptr() == ptr and same(got, 1)
+    held = got                                          # held: the next one gets arrays of its own
+    got = data.linearise(canons[2])
+    assert got[1].data_ptr() != ptr and same(got, 2) and same(held, 1)
+    with pytest.raises(SolverError, match="out must be float64 arrays"):
+        jacobian(model, layout, obs, data.gather(canons[0]), groups, out=(got[0], got[1][:, :2]))
 
 
 def test_the_gather_operator_shares_the_taps_storage(ggx):
@@ -560,8 +590,17 @@ def test_an_affine_model_is_linearised_once():
                                                                           sel.share[:, None].double() * rad)
     via = op.predict(model, layout, other)
     assert float((via - direct).abs().max()) < 1e-12 * float(direct.abs().max())
-    pred, _ = op.linearise(model, layout, other, param_groups(layout))
+    pred, J = op.linearise(model, layout, other, param_groups(layout))
     assert torch.allclose(pred, direct, rtol=1e-12, atol=1e-15)
+    # the kept Jacobian's blocks are the caller's to scale in place (the solver does): each call gets its own,
+    # and the prediction into a given array is the one made afresh
+    w = torch.ones(sel.n_pixels, 3, dtype=torch.float64)
+    first = op.normal(J, w, w)[1]
+    kept = first.clone()
+    first.mul_(7.0)
+    assert torch.equal(op.normal(J, w, w)[1], kept)
+    out = torch.full((sel.n_pixels, 3), float("nan"), dtype=torch.float64)
+    assert op.predict(model, layout, other, out=out) is out and torch.equal(out, via)
     sc2, fp2, _, _ = _scene("ggx-lambert", n_views=1)
     layout2 = Layout.of(sc2.model)
     op2 = PixelOperator(fp2, T * T)
