@@ -361,7 +361,7 @@ class _JointData:
         self.model, self.obs, self.layout, self.groups, self.loss, self.delta = model, obs, layout, groups, loss, delta
         self.T, self.P = T, layout.P
         self.pix = pixel_operator(footprints, T) if footprints is not None else None
-        self._kept = {}                 # matvec's kept per-sample array, the cost's pixel-sized one
+        self._kept = {}                 # matvec's kept per-sample or pixel-sized array (the cost's too)
         self._jac = None                # the pixel-centre linearisation's arrays, reused (_jacobian_arrays)
         self._issued = None             # a weak reference to the last pixel-centre Jacobian handed out
         self.y = self.pix.y if self.pix is not None else obs.radiance.to(ACC)
@@ -386,9 +386,9 @@ class _JointData:
         """The data cost of θ ``[T, P]``."""
         with torch.no_grad():
             canon = self.layout.canonical(th)
-            if self.pix is not None:    # (the prediction, residual and l2 cost in one kept array of the pixels')
+            if self.pix is not None:    # (the prediction, residual and l2 cost in the products' kept pixel array)
                 pred = self.pix.predict(self.model, self.layout, canon,
-                                        out=kept_array(self._kept, "cost", (self.pix.R, 3), ACC, canon.device))
+                                        out=kept_array(self._kept, "pixels", (self.pix.R, 3), ACC, canon.device))
                 r = torch.sub(self.y, pred, out=pred)
                 return float(robust_rho(r, self.loss, self.delta, out=r).sum())
             pred = self.obs.predict(self.model, self.layout.split(self.gather(canon).to(self.obs.dtype)))

@@ -430,11 +430,10 @@ class PixelOperator:
 
     def _pixel_radiance(self, model: Model, layout: Layout, canon: Tensor, out: Tensor | None = None) -> Tensor:
         """``[R, 3]`` the pixels' radiance at canonical texel parameters ``canon [T, P]`` (into ``out`` when given):
-        the samples evaluated and
-        summed into their pixels in blocks of :data:`JACOBIAN_BLOCK` samples, so that neither the model's
-        temporaries nor the samples' reads and radiance are ever whole (32 × 256² photos, 2.2 M samples, GGX +
-        Lambert: the model's temporaries whole took 0.44–0.64 GB, in blocks 0.12–0.25 GB in the same time; 32 ×
-        512², 5.3 M samples, the reads and radiance whole 0.27 GB more)."""
+        the samples evaluated and summed into their pixels in blocks of :data:`JACOBIAN_BLOCK` samples, so that
+        neither the model's temporaries nor the samples' reads and radiance are ever whole (32 × 256² photos, 2.2 M
+        samples, GGX + Lambert: the model's temporaries whole took 0.44–0.64 GB, in blocks 0.12–0.25 GB in the same
+        time; 32 × 512², 5.3 M samples, the reads and radiance whole 0.27 GB more)."""
         so = self.fp.samples
         x = canon.to(self.gather_op.dtype)
         out = torch.zeros(self.R, 3, dtype=ACC, device=canon.device) if out is None else out.zero_()
