@@ -684,11 +684,32 @@ class PixelOperator:
         i, j, pq, qp = _block_pairs(cs, ps, P)
         terms = torch.zeros(self.T, len(i), dtype=ACC, device=w.device)
         step = block_size(NORMAL_BLOCK, w.device)
+        # the same s values on each channel, channel by channel (GGX + Lambert: albedo, f0, roughness; Lambert: the
+        # albedo): the pairs are each channel's upper triangle, made as s(s + 1)/2 products of [n, 3] columns into
+        # one buffer instead of gathering both factors' columns — the same products, 1.5 → 0.8 s a call on 32 ×
+        # 512² photos
+        k = len(cs)
+        s = k // 3 if k % 3 == 0 else 0
+        tri = [(p, q) for p in range(s) for q in range(p, s)]
+        ch = torch.arange(3, device=cs.device)
+        by_channel = s > 0 and torch.equal(cs, ch.repeat_interleave(s)) and \
+            torch.equal(i, (ch[:, None] * s + torch.tensor([p for p, _ in tri], device=cs.device)).reshape(-1)) and \
+            torch.equal(j, (ch[:, None] * s + torch.tensor([q for _, q in tri], device=cs.device)).reshape(-1))
+        buf = torch.empty(min(step, self.E), 3, len(tri), dtype=ACC, device=w.device) if by_channel else None
         for a in range(0, self.E, step):
             b = min(a + step, self.E)
             V = values(a, b)
-            Vw = V * w[self.e_pix[a:b]][:, cs]
-            terms.index_add_(0, self.e_tex[a:b].long(), Vw[:, i] * V[:, j])     # (int32 indices: 2.4× slower)
+            if by_channel:
+                Vc = V.view(b - a, 3, s)
+                Vw = Vc * w.index_select(0, self.e_pix[a:b])[:, :, None]
+                X = buf[:b - a]
+                for t, (p, q) in enumerate(tri):
+                    torch.mul(Vw[:, :, p], Vc[:, :, q], out=X[:, :, t])
+                X = X.view(b - a, -1)
+            else:
+                Vw = V * w[self.e_pix[a:b]][:, cs]
+                X = Vw[:, i] * V[:, j]
+            terms.index_add_(0, self.e_tex[a:b].long(), X)      # (int32 indices: 2.4× slower)
         off = pq != qp                  # (a parameter pair repeats over channels: roughness with itself on each)
         B = torch.zeros(self.T, P * P, dtype=terms.dtype, device=terms.device).index_add_(1, pq, terms)
         return B.index_add_(1, qp[off], terms[:, off]).reshape(self.T, P, P)

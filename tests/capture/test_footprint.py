@@ -530,6 +530,41 @@ def test_the_pixel_centre_linearisation_reuses_a_dropped_jacobians_arrays_and_ne
         jacobian(model, layout, obs, data.gather(canons[0]), groups, out=(got[0], got[1][:, :2]))
 
 
+@pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert"])
+def test_block_sums_by_channel_are_the_gathered_products_bit_for_bit(ggx, monkeypatch, model_name):
+    """The per-texel blocks of values that lie channel by channel (the same count on each) are made as products of
+    whole channel columns: the same blocks, bit for bit, as the products of the gathered pair columns summed whole,
+    over many blocks of entries with a ragged end; values in another column order take the gathering path and give
+    the same blocks to rounding."""
+    import capture.fit.operators as ops
+    from capture.fit.operators import _block_pairs
+
+    sc, fp, _, T = ggx if model_name == "ggx-lambert" else _scene("lambert")
+    model, layout = sc.model, Layout.of(sc.model)
+    op = PixelOperator(fp, T * T, "samples")
+    gen = torch.Generator().manual_seed(6)
+    canon = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    J = op.linearise(model, layout, canon, param_groups(layout))[1]
+    w = torch.rand(op.R, 3, generator=gen, dtype=torch.float64) + 0.5
+
+    def values(a, b):
+        return op._entry_values(J.JcT, a, b).to(torch.float64)
+
+    P, cs, ps = layout.P, J.cs, J.ps
+    i, j, pq, qp = _block_pairs(cs, ps, P)
+    V = values(0, op.E)
+    Vw = V * w[op.e_pix.long()][:, cs]
+    terms = torch.zeros(T * T, len(i), dtype=torch.float64).index_add_(0, op.e_tex.long(), Vw[:, i] * V[:, j])
+    ref = torch.zeros(T * T, P * P, dtype=torch.float64).index_add_(1, pq, terms)
+    ref = ref.index_add_(1, qp[pq != qp], terms[:, pq != qp]).reshape(T * T, P, P)
+    monkeypatch.setattr(ops, "NORMAL_BLOCK", 59)
+    assert op.E % 59 != 0 and len(cs) % 3 == 0
+    assert torch.equal(op._block_sums(cs, ps, P, w, values), ref)
+    flip = torch.arange(len(cs) - 1, -1, -1)                            # (not channel by channel)
+    other = op._block_sums(cs[flip], ps[flip], P, w, lambda a, b: values(a, b)[:, flip])
+    assert torch.allclose(other, ref, rtol=1e-12, atol=1e-15 * float(ref.abs().max()))
+
+
 def test_the_gather_operator_shares_the_taps_storage(ggx):
     """The texels → samples operator is the footprints' own taps (sample-major): its column indices and values are
     the taps' tensors, not copies, and it reads the maps as the taps do."""
