@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import os
 import threading
+import weakref
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -29,7 +30,7 @@ import torch
 
 __all__ = ["DEVICES", "DeviceError", "resolve_device", "per_view", "release_memory", "CUDA_BLOCK_FACTOR", "block_size",
            "tune_allocator", "MMAP_THRESHOLD", "TRIM_THRESHOLD", "available_memory", "cgroup_memory_headroom",
-           "resident_memory", "memory_headroom", "kept_array"]
+           "resident_memory", "memory_headroom", "kept_array", "HandedOutArrays"]
 
 _R = TypeVar("_R")
 _PARALLEL = threading.Lock()
@@ -288,6 +289,36 @@ def kept_array(store: dict, key, shape: tuple[int, ...], dtype: torch.dtype,
     if buf is None or tuple(buf.shape) != shape or buf.dtype != dtype or buf.device != device:
         buf = store[key] = torch.empty(shape, dtype=dtype, device=device)
     return buf
+
+
+class HandedOutArrays:
+    """Kept working arrays (:func:`kept_array`) from which a caller gets results it may hold: the next call reuses
+    them once nothing holds what the last one handed out (weak references to it), and otherwise makes new ones,
+    leaving the held results their arrays. For results remade at the same size at every step of a solver, whose
+    fresh pages above glibc's mmap ceiling the kernel would zero at each step."""
+
+    def __init__(self):
+        self.store: dict = {}
+        self._handed = ()
+
+    def held(self) -> bool:
+        """Whether something still holds a result of the last call."""
+        return any(ref() is not None for ref in self._handed)
+
+    def arrays(self, specs, device: torch.device | str) -> list[torch.Tensor]:
+        """The arrays ``(key, shape, dtype)`` of ``specs``, uninitialised: the kept ones unless :meth:`held`."""
+        if self.held():
+            self.store = {}
+        self._handed = ()
+        return [kept_array(self.store, key, shape, dtype, device) for key, shape, dtype in specs]
+
+    def hand_out(self, *results) -> None:
+        """Record the results made from the arrays (tensors, weakly referenced) before they go to the caller."""
+        self._handed = tuple(weakref.ref(r) for r in results)
+
+    def release(self) -> None:
+        """Drop the kept arrays (held results keep theirs)."""
+        self.store = {}
 
 
 @functools.cache

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import time
-import weakref
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -14,7 +13,7 @@ from torch import Tensor
 
 from materials.model import Model
 from materials.params import CANONICAL
-from renderer.device import block_size, kept_array
+from renderer.device import HandedOutArrays, block_size, kept_array
 
 from ..observations import Observations
 from .layout import ACC, INVERSE_BLOCK, MAX_STEP, Layout, SolverError
@@ -362,8 +361,7 @@ class _JointData:
         self.T, self.P = T, layout.P
         self.pix = pixel_operator(footprints, T) if footprints is not None else None
         self._kept = {}                 # matvec's kept per-sample or pixel-sized array (the cost's too)
-        self._jac = None                # the pixel-centre linearisation's arrays, reused (_jacobian_arrays)
-        self._issued = None             # a weak reference to the last pixel-centre Jacobian handed out
+        self._jac = HandedOutArrays()   # the pixel-centre linearisation's arrays, reused (_jacobian_arrays)
         self.y = self.pix.y if self.pix is not None else obs.radiance.to(ACC)
         self.n_res = float(3 * self.pix.R) if self.pix is not None else float(3 * obs.weight.to(ACC).sum())
         # the sampling operator as sparse CSR matrices (K non-zeros per row): per-sample values are
@@ -409,15 +407,10 @@ class _JointData:
         place, once nothing holds its Jacobian (:func:`refine_joint` frees each step's system before the next
         linearisation), else new ones. Fresh, ``J`` is new pages at every step (0.27 GB on the 1.6 M pixel centres
         of 32 × 512² photos)."""
-        if self._issued is not None and self._issued() is not None:
-            self._jac = None            # (the held Jacobian's arrays stay its holder's)
         S = self.obs.n_samples
-        if self._jac is None or self._jac[1].device != device:
-            self._jac = (torch.empty(S, 3, dtype=ACC, device=device),
-                         torch.empty(S, 3, self.P, dtype=ACC, device=device))
-        pred, J = self._jac
+        pred, J = self._jac.arrays([("pred", (S, 3), ACC), ("J", (S, 3, self.P), ACC)], device)
         J = J.view(J.shape)             # (a tensor of its own, whose life says whether the Jacobian is held)
-        self._issued = weakref.ref(J)
+        self._jac.hand_out(J)
         return pred, J
 
     def normal(self, J, r: Tensor, dp: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -4,7 +4,6 @@ pixel footprints (pixels × texels, :class:`PixelOperator`)."""
 from __future__ import annotations
 
 import warnings
-import weakref
 from collections.abc import Callable, Iterator
 from typing import NamedTuple
 
@@ -12,7 +11,7 @@ import torch
 from torch import Tensor
 
 from materials.model import Model
-from renderer.device import block_size, kept_array, memory_headroom
+from renderer.device import HandedOutArrays, block_size, kept_array, memory_headroom
 
 from .layout import ACC, Layout, SolverError
 from .texel import JACOBIAN_BLOCK, jacobian_blocks
@@ -376,8 +375,7 @@ class PixelOperator:
         self.jacobian_form = None       # the form used, decided at the first linearisation
         self._gather_t = None           # gather_op's transpose, made for the first product of the samples' form
         self._kept = {}                 # the products' texel-sized conversions (_scratch)
-        self._values = {}               # the assembled Jacobian's value arrays, reused by the next (_value_arrays)
-        self._issued = ()               # weak references to the last assembled Jacobian's two matrices
+        self._values = HandedOutArrays()    # the assembled Jacobian's value arrays, reused by the next (_value_arrays)
 
     def observed(self) -> Tensor:
         """``[T]`` bool: texels some kept pixel reads with a positive weight."""
@@ -608,7 +606,7 @@ class PixelOperator:
         by_tex.scatter(lambda a, b: by_pix.take(a_vals, perm[a:b]), t_vals)
         J = PixelJacobian(cs, ps, csr_matrix(*a_idx, a_vals, (3 * self.R, P * self.T)),
                           csr_matrix(*t_idx, t_vals, (P * self.T, 3 * self.R)))
-        self._issued = (weakref.ref(J.A), weakref.ref(J.At))
+        self._values.hand_out(J.A, J.At)
         return J
 
     def _value_arrays(self, n: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -617,20 +615,18 @@ class PixelOperator:
         linearisation), else new ones. Fresh, each is new pages the kernel zeroes at first touch: on 32 × 512² photos
         (150 M values each, 0.6 GB) placing them took ~1 s more per linearisation than in kept arrays, and the
         footprint steps 137 → 121 s."""
-        if any(ref() is not None for ref in self._issued):
-            self._values = {}           # (the held Jacobian's arrays stay its holder's)
-        self._issued = ()
-        return (kept_array(self._values, "A", (n,), dtype, device),
-                kept_array(self._values, "At", (n,), dtype, device))
+        a_vals, t_vals = self._values.arrays([("A", (n,), dtype), ("At", (n,), dtype)], device)
+        return a_vals, t_vals
 
     def release(self) -> None:
         """Free what only further linearisations would use — the kept value arrays and, unless the model is affine
         (whose kept Jacobian :meth:`normal` reads through them), the matrices' index arrays — once the steps are
         done (1.2 GB each on 32 × 512² photos). A later :meth:`linearise` makes them again. The index arrays stay
         while a Jacobian made with them is still held."""
-        self._values, self._kept = {}, {}
-        if self._affine is None and not any(ref() is not None for ref in self._issued):
-            self._pattern, self._issued = None, ()
+        self._values.release()
+        self._kept = {}
+        if self._affine is None and not self._values.held():
+            self._pattern = None
 
     def normal(self, J: PixelJacobian | SampleJacobian, w: Tensor, wr: Tensor) -> tuple[Tensor, Tensor]:
         """``(Jᵀ W r [T, P], blocks Σ_i C_itᵀ W_i C_it [T, P, P])`` with residual weights ``w [R, 3]`` and

@@ -222,3 +222,21 @@ def test_kept_array_is_reused_until_its_kind_changes():
     b = kept_array(store, "x", (4, 3), torch.float64, "cpu")
     assert b is not a and store["x"] is b
     assert kept_array(store, "x", (4, 3), torch.float32, "cpu").dtype == torch.float32
+
+
+def test_handed_out_arrays_are_reused_only_once_their_results_are_dropped():
+    from renderer.device import HandedOutArrays
+
+    h = HandedOutArrays()
+    (a,) = h.arrays([("x", (5,), torch.float64)], "cpu")
+    result = a.view(5)
+    h.hand_out(result)
+    assert h.held()
+    (b,) = h.arrays([("x", (5,), torch.float64)], "cpu")
+    assert b.data_ptr() != a.data_ptr()                 # the held result keeps its array
+    h.hand_out(b.view(5))                               # (that view is dropped at once)
+    assert not h.held()
+    (c,) = h.arrays([("x", (5,), torch.float64)], "cpu")
+    assert c is b
+    h.release()
+    assert h.store == {}

@@ -465,10 +465,10 @@ def test_the_next_linearisation_reuses_a_dropped_jacobians_values_and_never_a_he
     assert J.A.values().data_ptr() not in ptrs and J.At.values().data_ptr() not in ptrs
     assert same(held, expected[1]) and same(J, expected[2])
     op.release()                                        # (a Jacobian is held: the index arrays stay)
-    assert op._values == {} and op._pattern is not None
+    assert op._values.store == {} and op._pattern is not None
     del held, J
     op.release()
-    assert op._pattern is None and op._issued == ()
+    assert op._pattern is None and not op._values.held()
     J = op.linearise(model, layout, canons[0], groups)[1]
     assert same(J, expected[0])
 
