@@ -80,6 +80,17 @@ FOOTPRINT_MAX = 4
 #: are sampled more coarsely — such texels are below what the photos resolve, and the fit's smoothness prior decides
 #: them (the confidence maps say so).
 FOOTPRINT_TEXTURE_MAX = 6
+#: Texel footprint (texels per pixel step) up to which the texture sub-samples stay :data:`FOOTPRINT_SPACING` apart:
+#: 0.5 × 6 = 3. Beyond it they skip texels — the operator aliases the map — and the photos determine no texel of
+#: that size: :func:`sampled_map_size` picks the map size the footprint steps run at.
+FOOTPRINT_SAMPLED = FOOTPRINT_SPACING * FOOTPRINT_TEXTURE_MAX
+#: Share of the kept pixels whose footprint :func:`sampled_map_size` keeps within :data:`FOOTPRINT_SAMPLED`: the
+#: median pixel. Measured (8 × 256² photos, 4 × 4 jittered rays, GGX + Lambert, 2-core CPU; docs/reconstruction.md,
+#: "Maps finer than the photos"): median footprints of 2.7 / 5.4 / 10.8 texels on 512² / 1024² / 2048² maps; the
+#: footprint steps at 512² and the maps upsampled give well-lit albedo / f0 / α 0.0297 / 0.0472 / 0.1452 on 1024²
+#: (steps at 1024²: 0.0308 / 0.0495 / 0.1515) and 0.0294 / 0.0497 / 0.1490 on 2048² (at 2048²: 0.0355 / 0.0535 /
+#: 0.1469; at 1024²: 0.0301 / 0.0515 / 0.1505), in 43 and 59 s instead of 56 and 123 s.
+FOOTPRINT_SAMPLED_SHARE = 0.5
 #: Relative error of a pixel's midpoint-rule average that the shading need may leave (module docstring): 0.025 %,
 #: far below the 1 % photo noise the solver's noise model assumes — the error is a bias shared by neighbouring
 #: pixels, not noise that averages out. Measured on the 256² Mitsuba torus: 1e-3 (0.51 M rays) left well-lit albedo
@@ -465,6 +476,30 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
                            view=view, pixel=pixel, counts=counts_r, noise_residual=noise, footprint_texels=foot_r,
                            drops=drops, cast_rays=cast, uniform_rays=uniform, psf_sigma=float(psf_sigma),
                            texture_samples=sub)
+
+
+def sampled_map_size(fp: PixelFootprints, min_size: int = 1) -> int:
+    """The largest of the map size halved k ≥ 0 times (at least ``min_size``) at which the footprints of
+    :data:`FOOTPRINT_SAMPLED_SHARE` of the kept pixels are within :data:`FOOTPRINT_SAMPLED` texels per pixel step
+    (a footprint of ``f`` texels on the full-size maps is ``f / 2^k`` on maps halved k times): the finest maps
+    the pixel footprints sample without skipping texels. The map size itself when it qualifies, or is not square,
+    or cannot be halved, or no pixel is kept."""
+    if not isinstance(min_size, int) or isinstance(min_size, bool) or min_size < 1:
+        raise ObservationError(f"sampled_map_size: min_size must be an integer ≥ 1, got {min_size!r}")
+    H, W = fp.map_size
+    f = fp.footprint_texels
+    if H != W or f.numel() == 0:
+        return H
+    # (the lower median of the finite footprints: a pixel whose UV derivative is not finite takes no part)
+    f = f[torch.isfinite(f)].to(torch.float64)
+    if f.numel() == 0:
+        return H
+    level = float(torch.kthvalue(f.cpu(), max(1, math.ceil(FOOTPRINT_SAMPLED_SHARE * f.numel()))).values)
+    size = H
+    while level > FOOTPRINT_SAMPLED and size // 2 >= min_size and size % 2 == 0:
+        size //= 2
+        level /= 2
+    return size
 
 
 def saving(fp: PixelFootprints) -> float:

@@ -61,6 +61,7 @@ from .fit import (
     LOSSES,
     NOISE,
     FitResult,
+    Layout,
     SolverError,
     photo_noise_ratio,
     photo_sigma,
@@ -186,7 +187,7 @@ def static_lights(views) -> tuple[bool, int, int]:
 
 #: The fast solver's options (every field of FitOptions but the loss, which reconstruct takes itself) and the pixel
 #: footprints it fits (an input, not an option).
-_FAST_KEYS = tuple(n for n in FitOptions.names() if n != "loss") + ("footprints", "refine_from")
+_FAST_KEYS = tuple(n for n in FitOptions.names() if n != "loss") + ("footprints", "refine_from", "refine_steps")
 _ADAM_KEYS = ("iterations", "lr", "delta", "observable_std", "noise", "sampling", "time_budget_s")
 
 
@@ -884,10 +885,11 @@ class _Fitter:
     device: torch.device = torch.device("cpu")     #: where the fits run
 
     def fit(self, model, obs: Observations, footprints: PixelFootprints | None = None,
-            refine_from: Mapping[str, Tensor] | None = None) -> tuple[FitResult, object, dict]:
+            refine_from: Mapping[str, Tensor] | None = None,
+            refine_steps: int | None = None) -> tuple[FitResult, object, dict]:
         """:func:`_fit` of ``model`` to ``obs`` (and, when given, the pixel ``footprints``; the fast solver's
-        ``refine_from`` maps) on :attr:`device`: the observations go there for the fit and the result comes back to
-        the CPU."""
+        ``refine_from`` maps and ``refine_steps``) on :attr:`device`: the observations go there for the fit and the
+        result comes back to the CPU."""
         moved = obs.device != self.device
         if moved:
             obs = obs.to(self.device)
@@ -895,6 +897,8 @@ class _Fitter:
         options = {**self.options, "footprints": footprints} if footprints is not None else self.options
         if refine_from is not None:
             options = {**options, "refine_from": {k: v.to(self.device) for k, v in refine_from.items()}}
+            if refine_steps is not None:
+                options["refine_steps"] = refine_steps
         fit, model, notes = _fit(model, obs, self.solver, self.loss, options, self.progress, self.scalars)
         return (fit.to("cpu") if moved else fit), model, notes
 
@@ -1007,26 +1011,57 @@ class _Fitted(NamedTuple):
 
 def _final_fit(mdl, seen: _Observed, fitter: _Fitter, fit_views: list[int], prog: Progress,
                report: Report) -> _Fitted:
-    """Fit the chosen model on the fitted views at full size; warn of scalars observable in no texel. When the maps
-    are finer than the photos' pixel centres sample (:func:`capture.fit.pyramid_size`, fast solver with footprints
-    only), the whole fit runs on coarser maps first and its maps, upsampled, start the footprint steps at full
-    size (the report's ``fit.pyramid``)."""
+    """Fit the chosen model on the fitted views at full size; warn of scalars observable in no texel. With the fast
+    solver and pixel footprints, maps finer than the photos are fitted on a pyramid (the report's ``fit.pyramid``):
+    when the pixel centres sample them too sparsely for the per-texel stages (:func:`capture.fit.pyramid_size`),
+    the whole fit runs on coarser maps first and its maps, upsampled, start the footprint steps; and those steps
+    run on maps no finer than the pixel footprints sample (:func:`capture.footprint.sampled_map_size`), whose
+    maps, upsampled to full size, are judged there without further steps."""
+    from .footprint import sampled_map_size
+
     prog.start("solve", report.model)
-    size = pyramid_size(seen.obs) if fitter.solver == "fast" and seen.fp is not None else seen.texture_size
+    pyramid = fitter.solver == "fast" and seen.fp is not None
+    size = pyramid_size(seen.obs) if pyramid else seen.texture_size
+    # (a model affine in its parameters takes its footprint steps at full size: they are sparse products only, and
+    # they explain the photos there — the Mitsuba torus, 8 × 128² photos on 256² maps, χ² 0.013 after six steps
+    # at 256², 3.45 judged from the fit at 128², the finest its footprints sample)
+    affine = all(s.linear for s in Layout.of(mdl).specs)
+    level = max(size, sampled_map_size(seen.fp, size)) if pyramid and not affine else seen.texture_size
+    full = seen.texture_size
     try:
-        if size < seen.texture_size:
+        if size < full or level < full:
+            # the whole fit on the pixel centres' level (or, where they sample the full size and the footprints do
+            # not, on the footprints' level)
             t0 = time.perf_counter()
-            cobs = seen.observe(size).select_views(fit_views)
-            cfp = seen.footprints(size).select_views(fit_views)
-            seen.views.release()        # nothing after this makes observations
+            first = size if size < full else level
+            cobs = seen.observe(first).select_views(fit_views)
+            cfp = seen.footprints(first).select_views(fit_views)
+            if level in (first, full):
+                seen.views.release()    # nothing after this makes observations
             coarse, mdl, scalar_notes = fitter.fit(mdl, cobs, cfp)
-            start = upsample_maps(coarse.maps, seen.texture_size)
-            note = {"coarse_size": size, "coarse_samples": cobs.n_samples, "coarse_s": time.perf_counter() - t0,
+            note = {"coarse_size": first, "coarse_samples": cobs.n_samples, "coarse_s": time.perf_counter() - t0,
                     "coarse_fit": {k: v for k, v in coarse.info.items()
-                                   if isinstance(v, (int, float, str)) and k != "accepted"}}
-            del cobs, cfp, coarse       # the coarse problem is not needed beside the full-size one
+                                   if isinstance(v, (int, float, str)) and k != "accepted"},
+                    "level_size": level, "full_size": full}
+            del cobs, cfp               # the coarse problem is not needed beside the finer ones
+            # steps follow from the filled maps; judged without steps, the maps are the fit's own (unfilled: the
+            # fills of texels no pixel determines on their own would not explain the photos)
+            maps = coarse.maps if level > first else coarse.raw
+            del coarse
+            if first < level < full:
+                # the footprint steps on the finest maps the footprints sample, from the coarse fit's maps
+                t1 = time.perf_counter()
+                lobs = seen.observe(level).select_views(fit_views)
+                lfp = seen.footprints(level).select_views(fit_views)
+                seen.views.release()
+                lfit, _, _ = fitter.fit(mdl, lobs, lfp, refine_from=upsample_maps(maps, level))
+                del lobs, lfp
+                maps = lfit.raw
+                note["level_s"] = time.perf_counter() - t1
+                del lfit
             t1 = time.perf_counter()
-            fit, _, _ = fitter.fit(mdl, seen.obs, seen.fp, refine_from=start)
+            fit, _, _ = fitter.fit(mdl, seen.obs, seen.fp, refine_from=upsample_maps(maps, full),
+                                   refine_steps=0 if level < full else None)
             fit.info["pyramid"] = {**note, "refine_s": time.perf_counter() - t1}
         else:
             seen.views.release()
@@ -1454,6 +1489,27 @@ def _options_lines(options: Mapping[str, object] | None) -> list[str]:
     return ["solver options: " + (", ".join(f"{k}={v}" for k, v in changed.items()) if changed else "defaults")]
 
 
+def _pyramid_line(pyr: dict, texels: int) -> str:
+    """The summary's line on the map pyramid of a fit (the report's ``fit.pyramid``, :func:`_final_fit`)."""
+    from .footprint import FOOTPRINT_SAMPLED
+
+    coarse, level, full = pyr["coarse_size"], pyr.get("level_size"), pyr.get("full_size")
+    sampled = (f"the finest the pixel footprints sample: at most {FOOTPRINT_SAMPLED:g} texels per pixel step for "
+               f"the median pixel")
+    if level is None or level == full:
+        return (f"coarse to fine: the photos' pixel centres sample the {texels} texels too sparsely for per-texel "
+                f"fits, so the fit ran on {coarse}² maps first ({pyr['coarse_s']:.1f} s) and its maps, upsampled, "
+                f"started the footprint steps at full size ({pyr['refine_s']:.1f} s); texels finer than the photos "
+                f"resolve hold the regularised solution")
+    upsampled = (f"upsampled to {full}² and judged there ({pyr['refine_s']:.1f} s): texels finer than the photos "
+                 f"resolve hold the upsampled solution")
+    if level == coarse:
+        return (f"coarse to fine: the fit ran on {level}² maps ({pyr['coarse_s']:.1f} s), {sampled}; its maps were "
+                f"{upsampled}")
+    return (f"coarse to fine: the per-texel stages ran on {coarse}² maps ({pyr['coarse_s']:.1f} s), where the photos' "
+            f"pixel centres sample the texels densely enough, the footprint steps on {level}² maps "
+            f"({pyr['level_s']:.1f} s), {sampled}; their maps were {upsampled}")
+
 def _summary(r: Report) -> str:
     lines = [f"model {r.model}  solver {r.solver}  device {r.device}  total {r.times.get('total', 0):.1f} s  "
              + "  ".join(f"{k} {v:.1f}s" for k, v in r.times.items() if k != "total") + _memory_text(r.memory),
@@ -1489,10 +1545,7 @@ def _summary(r: Report) -> str:
             for k, v in per_object.items()))
     pyr = r.fit.get("pyramid")
     if pyr:
-        lines.append(f"coarse to fine: the photos' pixel centres sample the {r.coverage.get('texels', 0)} texels too "
-                     f"sparsely for per-texel fits, so the fit ran on {pyr['coarse_size']}² maps first "
-                     f"({pyr['coarse_s']:.1f} s) and its maps, upsampled, started the footprint steps at full size "
-                     f"({pyr['refine_s']:.1f} s); texels finer than the photos resolve hold the regularised solution")
+        lines.append(_pyramid_line(pyr, r.coverage.get("texels", 0)))
     if r.fit.get("share_anchor_factor", 1.0) > 1.0:
         lines.append(f"reflectance sharing seeded from {r.fit['share_anchors']} roughly determined texels "
                      f"(thresholds × {r.fit['share_anchor_factor']:g}: fewer than 1 % of the texels determine every "

@@ -359,8 +359,9 @@ def _footprint_stage(fit: _Fit, theta: Tensor, footprints, share: bool,
     return theta, finfo
 
 
-def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float) -> FitResult:
-    """:func:`solve_fast` with ``refine_from``: the footprint steps from ``maps``, then the finalisation."""
+def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float, steps: int | None) -> FitResult:
+    """:func:`solve_fast` with ``refine_from``: ``steps`` footprint steps from ``maps`` (None: the default), then the
+    finalisation."""
     model, layout, obs, opts = fit.model, fit.layout, fit.obs, fit.opts
     missing = [n for n in model.param_names if n not in maps]
     extra = [n for n in maps if n not in model.param_names]
@@ -373,8 +374,9 @@ def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float) -
     theta = init_theta(model, layout, obs, maps).to(ACC)
     footprints = pixel_operator(footprints, obs.n_texels, opts.jacobian, opts.memory_budget_bytes)
     share = bool(shared_default(layout)) and opts.share is not False
-    steps = (FOOTPRINT_STEPS if all(s.linear for s in layout.specs) else PYRAMID_STEPS) \
-        if opts.footprint_iterations is None else int(opts.footprint_iterations)
+    if steps is None:
+        steps = (FOOTPRINT_STEPS if all(s.linear for s in layout.specs) else PYRAMID_STEPS) \
+            if opts.footprint_iterations is None else int(opts.footprint_iterations)
     info = {"options": opts.to_dict(), "refined_from": "maps"}
     history = []
     if steps > 0:
@@ -389,7 +391,7 @@ def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float) -
 
 def solve_fast(model: Model, obs: Observations, options: FitOptions | None = None, *,
                init: Mapping[str, Tensor] | None = None, footprints=None,
-               refine_from: Mapping[str, Tensor] | None = None,
+               refine_from: Mapping[str, Tensor] | None = None, refine_steps: int | None = None,
                progress: Callable[[str, int, float], None] | None = None, **overrides) -> FitResult:
     """Per-texel Levenberg-Marquardt with closed-form initialisation of the linear parameters.
 
@@ -416,6 +418,9 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
             refinement are skipped, and only the footprint steps run from these maps (``footprints`` required),
             with the neighbour prior, and the material parameters tied to these maps by ``anchor_weight`` where
             the model has any; their values are kept where the photos leave a texel undetermined.
+        refine_steps: footprint steps from ``refine_from`` (None: ``footprint_iterations`` when given, else
+            :data:`PYRAMID_STEPS`, or :data:`FOOTPRINT_STEPS` for a model affine in its parameters); 0 takes
+            the maps as they are and only judges them (posterior std, observability) through ``footprints``.
         progress: callback ``(stage, iteration, cost)``.
 
     Returns:
@@ -436,8 +441,14 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
     if opts.sampling == "bilinear" and obs.bilinear_index is None:
         raise SolverError("sampling='bilinear' needs observations built with bilinear=True (observe_views)")
     fit = _Fit(model, obs, layout, groups, opts, delta, check_noise(opts.noise), progress)
+    if refine_steps is not None:
+        if not isinstance(refine_steps, int) or isinstance(refine_steps, bool) or refine_steps < 0:
+            raise SolverError(f"refine_steps must be an integer ≥ 0, got {refine_steps!r}")
+        if refine_from is None:
+            raise SolverError("refine_steps counts the footprint steps from refine_from: give the maps they start "
+                              "from (refine_from=...)")
     if refine_from is not None:
-        return _refine_from(fit, refine_from, footprints, t0)
+        return _refine_from(fit, refine_from, footprints, t0, refine_steps)
     theta, info = closed_form_init(model, layout, obs, theta, plan.grid, opts.loss, delta, sep, opts.refine,
                                     fixed=tuple(init or ()))
     info["grid_s"] = time.perf_counter() - t_grid
