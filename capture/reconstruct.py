@@ -1025,8 +1025,7 @@ def _final_fit(mdl, seen: _Observed, fitter: _Fitter, fit_views: list[int], prog
     # (a model affine in its parameters takes its footprint steps at full size: they are sparse products only, and
     # they explain the photos there — the Mitsuba torus, 8 × 128² photos on 256² maps, χ² 0.013 after six steps
     # at 256², 3.45 judged from the fit at 128², the finest its footprints sample)
-    affine = all(s.linear for s in Layout.of(mdl).specs)
-    level = max(size, sampled_map_size(seen.fp, size)) if pyramid and not affine else seen.texture_size
+    level = sampled_map_size(seen.fp, size) if pyramid and not Layout.of(mdl).affine else seen.texture_size
     full = seen.texture_size
     try:
         if size < full or level < full:
@@ -1509,6 +1508,7 @@ def _pyramid_line(pyr: dict, texels: int) -> str:
     return (f"coarse to fine: the per-texel stages ran on {coarse}² maps ({pyr['coarse_s']:.1f} s), where the photos' "
             f"pixel centres sample the texels densely enough, the footprint steps on {level}² maps "
             f"({pyr['level_s']:.1f} s), {sampled}; their maps were {upsampled}")
+
 
 def _summary(r: Report) -> str:
     lines = [f"model {r.model}  solver {r.solver}  device {r.device}  total {r.times.get('total', 0):.1f} s  "

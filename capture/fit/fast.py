@@ -375,7 +375,7 @@ def _refine_from(fit: _Fit, maps: Mapping[str, Tensor], footprints, t0: float, s
     footprints = pixel_operator(footprints, obs.n_texels, opts.jacobian, opts.memory_budget_bytes)
     share = bool(shared_default(layout)) and opts.share is not False
     if steps is None:
-        steps = (FOOTPRINT_STEPS if all(s.linear for s in layout.specs) else PYRAMID_STEPS) \
+        steps = (FOOTPRINT_STEPS if layout.affine else PYRAMID_STEPS) \
             if opts.footprint_iterations is None else int(opts.footprint_iterations)
     info = {"options": opts.to_dict(), "refined_from": "maps"}
     history = []

@@ -86,6 +86,12 @@ class Layout:
             o += s.channels
         return Layout(tuple(model.params), tuple(offs), o)
 
+    @property
+    def affine(self) -> bool:
+        """Whether every parameter is flagged linear: the model is affine in its parameters (Lambert), so its
+        Jacobian is constant and a footprint step costs sparse products only."""
+        return all(s.linear for s in self.specs)
+
     def cols(self, name: str) -> list[int]:
         for s, o in zip(self.specs, self.offsets, strict=True):
             if s.name == name:

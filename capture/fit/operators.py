@@ -463,7 +463,7 @@ class PixelOperator:
         if not self._affine_checked:
             self._affine_checked = True
             free = sorted({c for cs in groups for c in cs}) == list(range(P))
-            if free and all(s.linear for s in layout.specs):
+            if free and layout.affine:
                 # other values: half of each parameter (inside every range that holds 0 and the value)
                 other = 0.5 * canon
                 direct = self._pixel_radiance(model, layout, other)
