@@ -342,24 +342,32 @@ def texel_normals(mesh, map_size: tuple[int, int], samples_per_texel: float = 8.
     H, W = map_size
     f = mesh.faces.long()
     uv = mesh.uvs.double()[f]                                     # [F, 3, 2]
-    nrm = mesh.normals.double()[f]                                # [F, 3, 3]
     e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
     area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).abs()
     acc = torch.zeros(H * W, 3, dtype=torch.float64)
     total = float(area.sum())
     if total > 0:
+        # each point: a face drawn by its UV area (the inverse of the areas' cumulative sum), then a uniform point of
+        # it as a corner plus its two edges weighted — in float32 (UVs to 6e-8, far inside a texel of 8K maps),
+        # accumulated in float64. The 8 M points of 2048² maps: 1.08 against 2.0 s for torch.multinomial and a
+        # float64 barycentric sum over [k, 3, ·] gathers (2 threads)
+        cdf = torch.cumsum(area, 0)
+        cdf = cdf / cdf[-1]
+        nrm = mesh.normals.float()[f]                              # [F, 3, 3]
+        uv0, uv1, uv2 = (uv[:, i].float() for i in range(3))
+        corner_uv, e1_uv, e2_uv = uv0, uv1 - uv0, uv2 - uv0
+        corner_n, e1_n, e2_n = nrm[:, 0], nrm[:, 1] - nrm[:, 0], nrm[:, 2] - nrm[:, 0]
         n_points = min(max(int(math.ceil(samples_per_texel * total * H * W)), 1), max_points)
         gen = torch.Generator().manual_seed(seed)
         for start in range(0, n_points, chunk):
             k = min(chunk, n_points - start)
-            face = torch.multinomial(area, k, replacement=True, generator=gen)
-            a, b = torch.rand(k, generator=gen, dtype=torch.float64), torch.rand(k, generator=gen, dtype=torch.float64)
+            face = torch.searchsorted(cdf, torch.rand(k, generator=gen, dtype=torch.float64)).clamp_(max=len(f) - 1)
+            a, b = torch.rand(k, 1, generator=gen), torch.rand(k, 1, generator=gen)
             flip = a + b > 1
             a, b = torch.where(flip, 1 - a, a), torch.where(flip, 1 - b, b)
-            w = torch.stack([1 - a - b, a, b], -1)[..., None]       # [k, 3, 1] barycentric
-            p_uv = (w * uv[face]).sum(1).clamp(0, 1)
-            p_n = (w * nrm[face]).sum(1)
-            acc.index_add_(0, texel_of(p_uv, H, W), p_n)
+            p_uv = torch.addcmul(torch.addcmul(corner_uv[face], e1_uv[face], a), e2_uv[face], b).clamp_(0, 1)
+            p_n = torch.addcmul(torch.addcmul(corner_n[face], e1_n[face], a), e2_n[face], b)
+            acc.index_add_(0, texel_of(p_uv, H, W), p_n.double())
     length = acc.norm(dim=-1, keepdim=True)
     covered = length[:, 0] > 1e-12
     normals = torch.where(covered[:, None], acc / length.clamp_min(1e-300), torch.zeros_like(acc))
@@ -461,11 +469,14 @@ def _auto_block(obs, n_surf: int) -> int:
 
 
 def _grow(m: Tensor, block: int, H: int, W: int) -> Tensor:
-    """``[H·W]`` bool ``m`` dilated by a ``block`` × ``block`` square."""
+    """``[H·W]`` bool ``m`` dilated by a ``block`` × ``block`` square: a row pass then a column pass (the square's
+    maximum is the maximum of its rows' maxima; the same masks as one square pool, which took 0.51 against 0.16 s
+    per mask at 2048² with the 15-texel block, 2 threads)."""
     import torch.nn.functional as F
 
     x = m.reshape(1, 1, H, W).float()
-    return F.max_pool2d(x, block, 1, block // 2)[..., :H, :W].reshape(H * W) > 0.5
+    x = F.max_pool2d(x, (1, block), 1, (0, block // 2))
+    return F.max_pool2d(x, (block, 1), 1, (block // 2, 0)).reshape(H * W) > 0.5
 
 
 def _advice_sentence(key: str, named: str, frac: float, cos: float, highlight_deg: float) -> str:
