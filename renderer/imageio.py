@@ -282,6 +282,16 @@ def _check_readable(path: Path) -> None:
 REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
 
 
+def _openexr():
+    """The OpenEXR module, its (de)compression on as many worker threads as torch's (the library's default is none:
+    a 2048² RGB map ZIP-compressed in 0.20 s on the calling thread, 0.12 s with 2 workers)."""
+    import OpenEXR
+
+    if OpenEXR.global_thread_count() == 0:
+        OpenEXR.set_global_thread_count(max(torch.get_num_threads(), 1))
+    return OpenEXR
+
+
 def write_exr(path, img, half: bool = False, allow_nonfinite: bool = False, chromaticities=None) -> None:
     """Write a linear image as an OpenEXR file (ZIP compression), atomically.
 
@@ -299,8 +309,7 @@ def write_exr(path, img, half: bool = False, allow_nonfinite: bool = False, chro
         ImageIOError: wrong shape, NaN/inf (unless allowed), values beyond the half range with
             ``half=True``, or an unwritable destination; the message names the file.
     """
-    import OpenEXR
-
+    OpenEXR = _openexr()
     path = _path(path)
     arr = _image_array(path, img, "image")
     finite = np.isfinite(arr)
@@ -351,7 +360,7 @@ def read_exr(path) -> Tensor:
         ImageNotFoundError: the file does not exist.
         ImageIOError: not an EXR, truncated or corrupt, or channels that are not one of the layouts above.
     """
-    import OpenEXR
+    OpenEXR = _openexr()
 
     path = _path(path)
     _check_readable(path)
