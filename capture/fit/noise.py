@@ -17,8 +17,8 @@ from ..observations import Observations
 from .layout import ACC, SolverError
 
 __all__ = ["LOSSES", "NOISE", "NOISE_QUANTILE", "CHI2_1_Q10", "MISFIT_PRIOR_DOF", "check_loss", "robust_rho",
-           "irls_weights", "default_delta", "check_noise", "noise_sigma", "photo_noise_ratio", "moderated_misfit",
-           "photo_sigma", "noise_floor"]
+           "irls_weights", "default_delta", "check_noise", "noise_sigma", "photo_noise_ratio", "noise_ratio",
+           "moderated_misfit", "photo_sigma", "noise_floor"]
 
 
 LOSSES = ("l2", "huber", "l1")
@@ -109,7 +109,14 @@ def photo_noise_ratio(obs: Observations, noise=NOISE) -> float | None:
     e = obs.noise_residual
     if e is None:
         return None
-    y = obs.radiance.to(ACC)
+    return noise_ratio(e, obs.radiance, noise)
+
+
+def noise_ratio(e: Tensor, y: Tensor, noise=NOISE) -> float | None:
+    """:func:`photo_noise_ratio` of noise residuals ``e [N, 3]`` (NaN where not measured) at radiances ``y [N, 3]`` —
+    the samples', or one photo's object pixels (:func:`capture.footprint.footprint_counts` measures each view's noise
+    with it; the noise model's floor is relative to the median of ``y``)."""
+    y = y.to(ACC)
     ok = torch.isfinite(e) & (y > 0)
     if int(ok.sum()) < 100:
         return None
