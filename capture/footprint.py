@@ -17,7 +17,9 @@ one-ray-per-pixel renders.
    * **rays**, for the shading (highlights, falloff, shadow edges, which vary inside a pixel even on a uniform
      material): the midpoint rule with k × k points errs by about ``c / (24 k²)`` of the pixel's value, ``c`` its
      relative second difference across the pixel, read off the photo itself
-     (``max(|I(x+1) + I(x−1) − 2 I(x)|, same in y) / I``), so ``k = ceil(sqrt(c / (24 · FOOTPRINT_TOLERANCE)))``;
+     (``max(|I(x+1) + I(x−1) − 2 I(x)|, same in y) / I``), so ``k = ceil(sqrt(c / (24 · FOOTPRINT_TOLERANCE)))``.
+     In a photo noisier than the fit's noise model the part of each difference its measured noise explains is left
+     out (:func:`_photo_noise`, :func:`_curvature`): noise is not curvature;
    * **texture sub-samples**, for the maps: ``kt = ceil(f / FOOTPRINT_SPACING)``, so that neighbouring samples are
      at most :data:`FOOTPRINT_SPACING` texels apart, capped at :data:`FOOTPRINT_TEXTURE_MAX` (they cost no ray, only
      operator entries). A pixel much smaller than a texel needs one: the maps are
