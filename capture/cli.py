@@ -105,7 +105,7 @@ def _reconstruct_options(args) -> dict:
 
     return dict(model=args.model, force=args.force, solver=args.solver, loss=args.loss, texture_size=args.tex,
                 holdout=args.holdout, footprint=not args.pixel_centres, sampling=args.sampling, threads=args.threads,
-                device=args.device,
+                device=args.device, photo_bin=args.bin,
                 dtype=torch.float64 if args.float64 else torch.float32, **known_options(args),
                 **fit_option_values(args))
 
@@ -141,6 +141,9 @@ def _add_reconstruct_args(p: argparse.ArgumentParser) -> None:
                    help="fast: per-texel Gauss-Newton/LM with closed-form linear parameters; adam: first order")
     p.add_argument("--loss", choices=("l2", "huber", "l1"), default="l2", help="robust loss (huber/l1 for highlights)")
     p.add_argument("--tex", type=int, default=None, help="texture size of the recovered maps (default: the dataset's)")
+    p.add_argument("--bin", type=int, default=1, metavar="K",
+                   help="fit the photos binned K×K (each block's mean: a pixel K times larger, modelled exactly): "
+                        "K² fewer pixels, memory and time, for photos finer than the maps hold; default 1")
     p.add_argument("--sampling", choices=("nearest", "bilinear"), default=None,
                    help="how samples read the maps (default: bilinear, as a texture-mapped renderer reads them)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (1 is faster on a loaded machine)")

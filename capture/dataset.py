@@ -33,7 +33,7 @@ import numbers
 import os
 import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -55,7 +55,7 @@ __all__ = [
     "FORMAT", "VERSION", "ENCODINGS", "DatasetError", "DatasetWarning", "View", "GroundTruth", "Photo", "Dataset",
     "load_dataset", "write_dataset", "model_from_spec", "model_spec", "camera_sees_mesh", "dataset_root",
     "degenerate_faces", "winding_numbers", "EXPOSURE_RANGE", "MAX_LIGHT", "JPEG_SUFFIXES", "LIGHT_FRAMES",
-    "MASK_DIR", "light_to_world",
+    "MASK_DIR", "light_to_world", "bin_pixels",
 ]
 
 #: The ``format`` string of every shadecap dataset's ``scene.json``.
@@ -244,6 +244,9 @@ class View:
         name: optional label.
         mask: optional mask image relative to the dataset folder (``masks/000.png``; nonzero = the object,
             usable; zero = not usable), or "" for none.
+        bin: the image and mask files are read binned ``bin × bin`` (:meth:`Dataset.binned`): ``camera`` is then the
+            binned image's camera and the files are ``bin`` times its size (plus up to ``bin − 1`` pixels that fill
+            no block). 1 (the default): the files are ``camera``'s size.
     """
 
     camera: Camera
@@ -252,6 +255,7 @@ class View:
     file: str = ""
     name: str = ""
     mask: str = ""
+    bin: int = 1
 
 
 @dataclass
@@ -362,12 +366,13 @@ class Dataset:
     def read_file_image(self, i: int) -> Tensor:
         """View ``i``'s image as decoded file values ``[H, W, 3]`` float32 (validated, not divided by exposure)."""
         img, _, _ = _read_view_image(self.root, self.views[i], i, self.encoding, self.bits)
-        return img
+        return bin_pixels(img, self.views[i].bin, "mean")
 
     def read_mask(self, i: int) -> Tensor | None:
         """View ``i``'s usable-pixel mask ``[H, W]`` bool (mask file AND alpha), or None when it has neither."""
         _, _, alpha = _read_view_image(self.root, self.views[i], i, self.encoding, self.bits)
-        return _combine_masks(alpha, _read_view_mask(self.root, self.views[i], i))
+        mask = _combine_masks(alpha, _read_view_mask(self.root, self.views[i], i))
+        return None if mask is None else bin_pixels(mask, self.views[i].bin, "all")
 
     def load_images(self, dtype: torch.dtype = torch.float32, device=None) -> list[Photo]:
         """Every image as linear radiance: decode (sRGB for PNG), divide by the view's exposure.
@@ -394,9 +399,47 @@ class Dataset:
             else:
                 saturated = (torch.nan_to_num(img, nan=-math.inf) >= sat * (1 - 1e-6)).any(-1)
             rad = img.to(torch.float64) / float(view.exposure)
+            k = view.bin  # a block is unusable where any of its pixels is: the mean of a clipped value is no value
+            rad, saturated = bin_pixels(rad, k, "mean"), bin_pixels(saturated, k, "any")
+            nonfinite, mask = bin_pixels(nonfinite, k, "any"), bin_pixels(mask, k, "all")
             out.append(Photo(rad.to(dtype=dtype, device=device), saturated.to(device), nonfinite.to(device),
                              mask.to(device)))
         return out
+
+    def binned(self, k: int) -> Dataset:
+        """This dataset with its photos binned ``k × k``: each block of ``k × k`` pixels one pixel, their mean radiance
+        — a pixel ``k`` times larger, whose box filter is the union of its block's boxes, so a fit that integrates
+        over pixel footprints models the binned photos exactly. The cameras become the binned images' cameras
+        (:meth:`renderer.camera.Camera.binned`), ``psf_sigma`` is divided by ``k`` (the blur in the binned pixels'
+        units), and the readers (:meth:`load_images`, :meth:`read_file_image`, :meth:`read_mask`) bin what they
+        read: a binned pixel is saturated, non-finite or masked out when any pixel of its block is. The files
+        are not touched. Binning an already binned dataset multiplies the bins.
+
+        Raises:
+            DatasetError: ``k`` is not a positive integer, or a view's image is smaller than ``k`` pixels."""
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise DatasetError(f"bin must be a positive integer (1: the photos as they are), got {k!r}")
+        if k == 1:
+            return self
+        views = []
+        for i, v in enumerate(self.views):
+            try:
+                views.append(replace(v, camera=v.camera.binned(k), bin=v.bin * k))
+            except CameraError as exc:
+                raise DatasetError(f"images[{i}]: {exc}") from None
+        return replace(self, views=views, psf_sigma=self.psf_sigma / k)
+
+
+def bin_pixels(x: Tensor, k: int, how: str) -> Tensor:
+    """``x [H, W, ...]`` binned ``k × k`` → ``[H // k, W // k, ...]``: each block's ``"mean"``, or for a bool image
+    ``"any"`` / ``"all"``; the last ``H mod k`` rows and ``W mod k`` columns fill no block and are left out."""
+    if k == 1:
+        return x
+    H, W = x.shape[0] // k, x.shape[1] // k
+    blocks = x[:H * k, :W * k].reshape(H, k, W, k, *x.shape[2:])
+    if how == "mean":
+        return blocks.mean(dim=(1, 3))
+    return blocks.any(3).any(1) if how == "any" else blocks.all(3).all(1)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -585,10 +628,11 @@ def _read_view_image(root: Path, view: View, i: int, encoding: str,
                 img = torch.cat([decode(img[..., :ncol], "srgb"), img[..., ncol:]], dim=-1)
     except ImageIOError as exc:
         raise _err(path, None, f"unreadable image ({fld}): {exc}", "rewrite the file") from None
-    H, W = view.camera.height, view.camera.width
-    if img.shape[0] != H or img.shape[1] != W:
+    if img.shape[0] // view.bin != view.camera.height or img.shape[1] // view.bin != view.camera.width:
+        size = f"{view.camera.width}×{view.camera.height}" + (f" binned {view.bin}×{view.bin}" if view.bin > 1 else "")
         raise _err(path, None, f"image is {img.shape[1]}×{img.shape[0]} px but its camera ({SCENE_FILE} "
-                   f"images[{i}].camera) is {W}×{H}", "resize the image or fix the camera's width/height and K")
+                   f"images[{i}].camera) is {size}", "resize the image or fix the camera's width/height and K")
+    H, W = img.shape[:2]
     c = img.shape[2]
     alpha = None
     if c in (2, 4):  # gray+alpha or RGBA: alpha is the mask (linear, never sRGB-decoded)
@@ -624,9 +668,9 @@ def _read_view_mask(root: Path, view: View, i: int) -> Tensor | None:
     except ImageIOError as exc:
         raise _err(path, None, f"unreadable mask ({fld}): {exc}", "rewrite the file") from None
     H, W = view.camera.height, view.camera.width
-    if arr.shape[0] != H or arr.shape[1] != W:
-        raise _err(path, None, f"mask is {arr.shape[1]}×{arr.shape[0]} px but its image's camera is {W}×{H}",
-                   "write the mask at the image's size")
+    if arr.shape[0] // view.bin != H or arr.shape[1] // view.bin != W or (view.bin == 1 and arr.shape[:2] != (H, W)):
+        raise _err(path, None, f"mask is {arr.shape[1]}×{arr.shape[0]} px but its image's camera is {W}×{H}"
+                   + (f" binned {view.bin}×{view.bin}" if view.bin > 1 else ""), "write the mask at the image's size")
     colour = arr[..., :3] if arr.shape[2] >= 3 else arr[..., :1]
     return torch.from_numpy((colour != 0).any(-1))
 

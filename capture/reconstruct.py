@@ -457,7 +457,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                 max_grid_views: int = 8, sampling: str | None = None,
                 threads: int | None = None, known: Mapping[str, object] | None = None,
                 scalars: tuple[str, ...] | list[str] = SCALARS, holdout: Sequence[int] | None = None,
-                footprint: bool = True, psf_sigma: float | None = None, device: str = "auto", **options) -> Report:
+                footprint: bool = True, psf_sigma: float | None = None, device: str = "auto", photo_bin: int = 1,
+                **options) -> Report:
     """Recover the material maps of a dataset and write them to ``out_dir`` (see module docstring).
 
     Args:
@@ -483,10 +484,15 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         footprint: fit the photos' pixels as area averages over their footprints (:mod:`capture.footprint`,
             the fast solver's final joint solve, default) — how every camera and every renderer forms a pixel.
             False fits one ray per pixel centre only: exact only for photos rendered that way.
-        psf_sigma: σ (pixels) of a Gaussian blur (lens, demosaicing) in the photos' pixel filter, convolved with
-            the box; None = the dataset's ``psf_sigma`` (0 when scene.json has none).
+        psf_sigma: σ (pixels of the photos as stored, before ``photo_bin``) of a Gaussian blur (lens, demosaicing) in
+            the photos' pixel filter, convolved with the box; None = the dataset's ``psf_sigma`` (0 when scene.json
+            has none).
         device: where the fits run: "cpu", "cuda" (or "cuda:N") or "auto" (CUDA when torch sees a GPU, the default);
             the ray casting, observations and metrics stay on the CPU (:mod:`renderer.device`).
+        photo_bin: fit the photos binned ``k × k`` (:meth:`capture.dataset.Dataset.binned`: each block's mean, a pixel
+            ``k`` times larger, which the footprint fit models exactly): about ``k²`` fewer pixels, so ``k²`` less
+            memory and time in every stage that scales with them, for photos finer than the maps hold. 1 (default):
+            the photos as they are. Every output (views, re-renders, PSNR) is then at the binned size.
         threads: torch intra-op threads for this call (restored after); None = leave as is. On a
             machine where another process holds a core, 1 thread is much faster than 2 (measured
             ~70× on small index_add ops: OpenMP threads wait for the busy core).
@@ -546,7 +552,7 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
                                device)
         prog = progress if isinstance(progress, Progress) else Progress(_stages(model, solver, footprint, sampling),
                                                                         enabled=False)
-        data = _load(dataset_path, holdout, prog)
+        data = _load(dataset_path, holdout, photo_bin, prog)
     with _timed(times, "gbuffer"):
         views = _PreparedViews(_gbuffers(data.ds, prog))
     with _timed(times, "observe"):
@@ -677,12 +683,19 @@ class _Loaded:
     held_views: list[int]           #: view indices held out, ascending (may be empty)
 
 
-def _load(dataset_path, holdout, prog: Progress) -> _Loaded:
-    """Load (and validate) the dataset, and check ``holdout`` against its views."""
-    from capture.dataset import load_dataset
+def _load(dataset_path, holdout, photo_bin: int, prog: Progress) -> _Loaded:
+    """Load (and validate) the dataset, binned ``photo_bin × photo_bin``, and check ``holdout`` against its views."""
+    from capture.dataset import DatasetError, load_dataset
 
+    if isinstance(photo_bin, bool) or not isinstance(photo_bin, int) or photo_bin < 1:
+        raise ReconstructionError(f"photo_bin must be a positive integer (1: the photos as they are), got "
+                                  f"{photo_bin!r}")
     prog.start("load")
     ds = load_dataset(dataset_path)
+    try:
+        ds = ds.binned(photo_bin)
+    except DatasetError as exc:
+        raise ReconstructionError(f"photo_bin: {exc}") from None
     held_views = _check_holdout(holdout, len(ds.views))
     return _Loaded(ds, [i for i in range(len(ds.views)) if i not in held_views], held_views)
 
@@ -808,7 +821,8 @@ def _observe(data: _Loaded, views: _PreparedViews, solver: str, sampling: str | 
     all_obs = observe(texture_size)
     fp_all = fp = held_fp = footprints = None
     try:
-        psf = ds.psf_sigma if psf_sigma is None else check_psf_sigma(psf_sigma)
+        # a σ given here is in the photos' own pixels, as the dataset's is before binning divides it
+        psf = ds.psf_sigma if psf_sigma is None else check_psf_sigma(psf_sigma) / ds.views[0].bin
     except ValueError as exc:
         raise ReconstructionError(f"{exc}; or None for the dataset's") from None
     if footprint and solver == "fast" and sampling == "bilinear":
@@ -837,7 +851,7 @@ def _report_samples(report: Report, data: _Loaded, seen: _Observed, footprint: b
     """The report's ``samples`` and ``drops``, and a warning when the photos' pixel blur goes unmodelled."""
     obs, fp_all, psf = seen.all_obs, seen.fp_all, seen.psf
     report.samples = {"pixels": _n_pixels(data.ds), "valid": obs.n_samples, "pairs": obs.n_pairs,
-                      "lights": len(seen.lights), "views": len(data.ds.views)}
+                      "lights": len(seen.lights), "views": len(data.ds.views), "bin": data.ds.views[0].bin}
     report.drops = dict(obs.drops)
     if psf > 0 and fp_all is None:
         report.warnings.append(f"the photos' pixel filter has a Gaussian blur (psf_sigma {psf:g} px) that only the "
@@ -1513,7 +1527,9 @@ def _pyramid_line(pyr: dict, texels: int) -> str:
 def _summary(r: Report) -> str:
     lines = [f"model {r.model}  solver {r.solver}  device {r.device}  total {r.times.get('total', 0):.1f} s  "
              + "  ".join(f"{k} {v:.1f}s" for k, v in r.times.items() if k != "total") + _memory_text(r.memory),
-             f"samples {r.samples.get('valid')} valid of {r.samples.get('pixels')} pixels; dropped "
+             f"samples {r.samples.get('valid')} valid of {r.samples.get('pixels')} pixels"
+             + (f" (photos binned {r.samples['bin']}×{r.samples['bin']})" if r.samples.get("bin", 1) > 1 else "")
+             + "; dropped "
              + ", ".join(f"{k} {v}" for k, v in r.drops.items() if v),
              f"texels observed {r.coverage.get('observed')} / {r.coverage.get('texels')}; unobservable "
              + ", ".join(f"{k} {v}" for k, v in r.coverage.get("unobservable", {}).items())]

@@ -107,6 +107,28 @@ class Camera:
         """A copy in ``dtype``."""
         return Camera(self.K, self.R, self.t, self.width, self.height, dtype=dtype)
 
+    def binned(self, k: int) -> Camera:
+        """The camera of this one's image binned ``k × k``: pixel (x', y') is the block of pixels
+        x = k·x' … k·x' + k − 1 (and likewise y), so its pixel coordinates are ``x' = (x + ½)/k − ½`` — ``fx``, the
+        skew and ``fy`` divided by ``k``, ``c' = (c + ½)/k − ½`` — and its size ``W // k × H // k`` (the last
+        ``W mod k`` columns and ``H mod k`` rows, which fill no block, are left out). A binned pixel's box is exactly
+        the union of its block's boxes.
+
+        Raises:
+            CameraError: ``k`` is not a positive integer, or is larger than the image."""
+        if isinstance(k, bool) or not isinstance(k, numbers.Integral) or int(k) < 1:
+            raise CameraError(f"bin must be a positive integer, got {k!r}")
+        k = int(k)
+        if k > min(self.width, self.height):
+            raise CameraError(f"bin {k} is larger than the {self.width}×{self.height} image; use a bin of at most "
+                              f"{min(self.width, self.height)}")
+        if k == 1:
+            return self
+        K = self.K.clone()
+        K[:2, :2] = K[:2, :2] / k
+        K[:2, 2] = (K[:2, 2] + 0.5) / k - 0.5
+        return Camera(K, self.R, self.t, self.width // k, self.height // k, dtype=self.K.dtype)
+
     def world_to_camera(self, points: Tensor) -> Tensor:
         """``x_cam = R x + t`` for points ``[..., 3]``."""
         R, t = self.R.to(points), self.t.to(points)

@@ -4,6 +4,7 @@
     python scripts/make_independent_fixtures.py --out tests/fixtures/mitsuba            # the committed fixtures
     python scripts/make_independent_fixtures.py --out /tmp/independent --full           # benchmark sizes
     python scripts/make_independent_fixtures.py --out /tmp/x --only torus-lambert --spp 64
+    python scripts/make_independent_fixtures.py --binned tests/fixtures/mitsuba    # binned-camera references
 
 The scenes (mesh, cameras, lights, ground-truth maps) come from shadecap's own scene builder
 (:func:`capture.synth.build_scene`); only the photos come from Mitsuba 3 (``scalar_rgb``,
@@ -19,6 +20,7 @@ it is imported only when rendering.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -363,6 +365,45 @@ def make_fixture(fx: FixtureScene, out_dir: Path, spp: int, overwrite: bool = Tr
                          overwrite=overwrite)
 
 
+#: The binned-camera references: the first :data:`BINNED_VIEWS` views of each scene, binned :data:`BINNED_BIN` × itself.
+BINNED_BIN = 2
+BINNED_VIEWS = 3
+
+
+def make_binned_references(folder: Path, spp: int, k: int = BINNED_BIN, views: int = BINNED_VIEWS,
+                           log=print) -> Path:
+    """Render the first ``views`` views of the scene in ``folder`` (one of :func:`fixture_scenes`) with Mitsuba
+    through its cameras binned ``k × k`` (:meth:`renderer.camera.Camera.binned`) into ``folder/binned-k/``:
+    ``NNN.exr`` (half-float radiance) and ``cameras.json`` (the binned cameras). A photo binned by
+    :meth:`capture.dataset.Dataset.binned` must equal these up to Mitsuba's sampling noise: the check of the
+    binned camera's convention against a renderer that shares no code with shadecap."""
+    from renderer.imageio import write_exr
+
+    name = folder.name
+    fx = {s.name: s for s in fixture_scenes()}.get(name)
+    if fx is None:
+        raise ValueError(f"{folder} is none of the scenes {[s.name for s in fixture_scenes()]}")
+    mi = import_mitsuba()
+    scene: Scene = build_scene(fx.config)
+    if fx.albedo is not None:
+        old = scene.maps["albedo"]
+        scene = replace(scene, maps={**scene.maps, "albedo": fx.albedo(old.shape[0]).to(old)})
+    passes = bsdf_passes(mi, scene.model_spec, scene.maps)
+    shapes = [mitsuba_mesh(mi, scene.mesh, bsdf, name=f"object-{n}") for n, bsdf in passes]
+    out = folder / f"binned-{k}"
+    out.mkdir(exist_ok=True)
+    cameras = []
+    for i, view in enumerate(scene.views[:views]):
+        cam = view.camera.binned(k)
+        rad = render_view(mi, shapes, cam, view.lights, spp, seed=1000 + i)
+        write_exr(out / f"{i:03d}.exr", torch.from_numpy(view.exposure * rad).float(), half=True)
+        cameras.append(cam.to_dict())
+        log(f"  {name}: view {i} binned {k}×{k} → {cam.width}×{cam.height}")
+    (out / "cameras.json").write_text(json.dumps({"bin": k, "spp": spp, "renderer": f"mitsuba {mi.__version__} "
+                                                 f"({VARIANT})", "cameras": cameras}, indent=1) + "\n")
+    return out
+
+
 def check(folder: Path, only=None, supersample: int = 8) -> int:
     """Print the agreement of every scene folder under ``folder`` (those of ``only`` if given)."""
     names = [s.name for s in fixture_scenes()]
@@ -394,9 +435,18 @@ def main(argv=None) -> int:
                     help=f"samples per pixel, a perfect square (stratified sampler; default {DEFAULT_SPP})")
     ap.add_argument("--only", action="append", default=None, metavar="NAME", help="render only this scene (repeatable)")
     ap.add_argument("--views", type=int, default=None, help="render only the first N views (quick checks)")
+    ap.add_argument("--binned", metavar="FOLDER", default=None,
+                    help=f"render the first {BINNED_VIEWS} views of each scene under FOLDER through its cameras binned "
+                         f"{BINNED_BIN} × {BINNED_BIN} into SCENE/binned-{BINNED_BIN}/ (references for the photos' "
+                         "binning)")
     args = ap.parse_args(argv)
     if args.check:
         return check(Path(args.check), args.only, args.supersample)
+    if args.binned:
+        for fx in fixture_scenes():
+            if (Path(args.binned) / fx.name / "scene.json").is_file() and (not args.only or fx.name in args.only):
+                print(f"{fx.name}: wrote {make_binned_references(Path(args.binned) / fx.name, args.spp)}")
+        return 0
     if not args.out:
         ap.error("--out is required (or --check FOLDER)")
     if args.spp < 1 or math.isqrt(args.spp) ** 2 != args.spp:

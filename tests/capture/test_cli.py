@@ -100,6 +100,21 @@ def test_holdout_views_on_the_command_line(tmp_path, capsys):
     assert "leaves no view to fit" in capsys.readouterr().err and not (tmp_path / "x").exists()
 
 
+def test_bin_on_the_command_line_fits_the_binned_photos(mitsuba_scene, tmp_path, capsys):
+    # `--bin 2` reaches reconstruct as photo_bin=2: the report counts the binned pixels and the summary says so
+    import json
+
+    out = tmp_path / "o"
+    assert main(["reconstruct", str(mitsuba_scene("torus-lambert")), "--model", "lambert", "--out", str(out),
+                 "--bin", "2"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["samples"]["bin"] == 2 and report["samples"]["pixels"] == 8 * 64 * 64
+    assert "(photos binned 2×2)" in (out / "summary.txt").read_text()
+    assert main(["reconstruct", str(mitsuba_scene("torus-lambert")), "--model", "lambert", "--out",
+                 str(tmp_path / "x"), "--bin", "0"]) == 2
+    assert "photo_bin must be a positive integer" in capsys.readouterr().err
+
+
 def _script(name: str):
     import importlib.util
     from pathlib import Path
