@@ -668,7 +668,7 @@ def _read_view_mask(root: Path, view: View, i: int) -> Tensor | None:
     except ImageIOError as exc:
         raise _err(path, None, f"unreadable mask ({fld}): {exc}", "rewrite the file") from None
     H, W = view.camera.height, view.camera.width
-    if arr.shape[0] // view.bin != H or arr.shape[1] // view.bin != W or (view.bin == 1 and arr.shape[:2] != (H, W)):
+    if arr.shape[0] // view.bin != H or arr.shape[1] // view.bin != W:
         raise _err(path, None, f"mask is {arr.shape[1]}×{arr.shape[0]} px but its image's camera is {W}×{H}"
                    + (f" binned {view.bin}×{view.bin}" if view.bin > 1 else ""), "write the mask at the image's size")
     colour = arr[..., :3] if arr.shape[2] >= 3 else arr[..., :1]

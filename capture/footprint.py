@@ -102,9 +102,10 @@ FOOTPRINT_TOLERANCE = 2.5e-4
 #: Standard deviations of a photo's noise that a second difference must exceed to count as the shading's curvature
 #: (:func:`_curvature`, photos noisier than the noise model only): noise alone then passes at 0.3 % of the pixels per
 #: difference. Measured (2-core CPU; `shadecap synth --size 512 --tex 128 --views 8 --noise 3000`, GGX + Lambert): the
-#: noise asked 16 rays of 91 % of the pixels (6.2 M rays, 77.1 s, 3.08 GiB); 3 σ with the smoothed differences 2.0 M
-#: rays, 40.5 s, 1.75 GiB, well-lit albedo / f0 / α 0.0114 / 0.0326 / 0.1382 → 0.0113 / 0.0324 / 0.1356; 3 σ without
-#: them 1.5 M rays and visible-highlight f0 0.0300 → 0.0342; 1.5 σ without them 3.0 M rays, 0.0336.
+#: noise asked 16 rays of 91 % of the pixels (6.2 M rays, 77.1 s, 3.08 GiB); 3 σ with the smoothed differences 1.3 M
+#: rays, 36.2 s, 1.58 GiB, well-lit albedo / f0 / roughness 0.0114 / 0.0326 / 0.1382 → 0.0113 / 0.0324 / 0.1355; 3 σ
+#: without them (σ ∝ the signal) 1.5 M rays and visible-highlight f0 0.0300 → 0.0342; 1.5 σ without them 3.0 M rays,
+#: 0.0336 (docs/log.md, "noisy photos' ray counts").
 CURVATURE_NOISE_Z = 3.0
 #: Intensity bins of equal pixel count in which :func:`_photo_noise` measures a photo's noise variance.
 NOISE_BINS = 16
@@ -297,10 +298,9 @@ def _photo_noise(photo: Tensor, hit: Tensor) -> Tensor | None:
     The std is a sensor's signal-dependent noise, ``σ² = a·I + b`` (shot noise and read noise; Foi et al., "Practical
     Poissonian-Gaussian noise modeling and fitting for single-image raw-data", IEEE TIP 2008), fitted to
     :data:`NOISE_BINS` bins of equal count of the object's pixel values (3 × 3 box means, so that a pixel's own
-    noise does not choose its bin), each bin's variance read as the residual's
-    robust :data:`capture.fit.noise.NOISE_QUANTILE` quantile of ``e²`` over that quantile of χ²₁ (edges and
-    highlights inflate a few residuals, noise all of them), ``a, b ≥ 0`` by least squares relative to each bin's
-    variance."""
+    noise does not choose its bin), each bin's variance read as the residual's robust
+    :data:`capture.fit.noise.NOISE_QUANTILE` quantile of ``e²`` over that quantile of χ²₁ (edges and highlights
+    inflate a few residuals, noise all of them), ``a, b ≥ 0`` by least squares relative to each bin's variance."""
     img = torch.nan_to_num(photo.to(torch.float64), nan=0.0, posinf=0.0, neginf=0.0)
     valid = hit & torch.isfinite(photo).all(-1)
     if int(valid.sum()) < 100:
