@@ -1481,8 +1481,8 @@ def _report_budget(report: Report, budget: float | None) -> None:
         report.warnings.append(
             f"peak memory {peak / 2 ** 30:.2f} GiB went above the memory budget of {budget:g} GiB: the budget sizes "
             f"only the footprint solve's Jacobian (kept {form or 'as asked'}); the observations of the {pixels} "
-            f"observed pixels and their pixel operator are held whole. Fit smaller maps (--texture-size) or a "
-            f"dataset of fewer views, or raise the budget")
+            f"observed pixels and their pixel operator are held whole. Fit the photos binned (--bin 2: about 4× "
+            f"fewer pixels, photo_bin=2), smaller maps (--tex) or a dataset of fewer views, or raise the budget")
 
 
 def _memory_text(memory: Mapping[str, int]) -> str:

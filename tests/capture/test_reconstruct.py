@@ -72,7 +72,7 @@ def test_a_memory_budget_keeps_the_footprint_jacobian_per_sample_and_warns_when_
                         grid=4, footprint_iterations=1, memory_budget=1 / 1024)
     assert rep.fit["footprint_jacobian"] == "samples" and rep.memory["budget_bytes"] == 2 ** 20
     assert [w for w in rep.warnings if "went above the memory budget of 0.000976562 GiB" in w
-            and "(kept samples)" in w]
+            and "(kept samples)" in w and "--bin 2" in w and "(--tex)" in w]
     assert "budget 0.00 GiB" in (tmp_path / "b" / "summary.txt").read_text().splitlines()[0]
     # a budget it stays within: no warning, the assembled matrices
     rep = R.reconstruct(lambert_ds, model="ggx-lambert", out_dir=tmp_path / "c", progress=False, iterations=3,
