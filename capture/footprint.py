@@ -291,9 +291,10 @@ def _curvature(photo: Tensor, sigma: Tensor | None = None) -> Tensor:
 
 def _photo_noise(photo: Tensor, hit: Tensor) -> Tensor | None:
     """``[H, W, 3]`` noise std of a photo ``[H, W, 3]`` at its object pixels ``hit [H, W]`` (0 elsewhere), or None
-    when the photo is no noisier than the noise model the fit assumes (:func:`capture.fit.noise.noise_ratio` of its
-    image-space noise residual at most 1; noise-free renders read 0–0.11): its second differences are then the
-    shading's.
+    when the photo is no noisier than the default noise model (:data:`capture.fit.noise.NOISE`, 1 % of the signal —
+    whatever ``noise`` a fit is given: the question is whether noise could pass for curvature;
+    :func:`capture.fit.noise.noise_ratio` of its image-space noise residual at most 1; noise-free renders read
+    0–0.11): its second differences are then the shading's.
 
     The std is a sensor's signal-dependent noise, ``σ² = a·I + b`` (shot noise and read noise; Foi et al., "Practical
     Poissonian-Gaussian noise modeling and fitting for single-image raw-data", IEEE TIP 2008), fitted to
