@@ -103,12 +103,15 @@ FOOTPRINT_TOLERANCE = 2.5e-4
 #: (:func:`_curvature`, photos noisier than the noise model only): noise alone then passes at 0.3 % of the pixels per
 #: difference. Measured (2-core CPU; `shadecap synth --size 512 --tex 128 --views 8 --noise 3000`, GGX + Lambert): the
 #: noise asked 16 rays of 91 % of the pixels (6.2 M rays, 77.1 s, 3.08 GiB); 3 σ with the smoothed differences 1.3 M
-#: rays, 36.2 s, 1.58 GiB, well-lit albedo / f0 / roughness 0.0114 / 0.0326 / 0.1382 → 0.0113 / 0.0324 / 0.1355; 3 σ
+#: rays, 35.4 s, 1.56 GiB, well-lit albedo / f0 / roughness 0.0114 / 0.0326 / 0.1382 → 0.0113 / 0.0323 / 0.1355; 3 σ
 #: without them (σ ∝ the signal) 1.5 M rays and visible-highlight f0 0.0300 → 0.0342; 1.5 σ without them 3.0 M rays,
 #: 0.0336 (docs/log.md, "noisy photos' ray counts").
 CURVATURE_NOISE_Z = 3.0
-#: Intensity bins of equal pixel count in which :func:`_photo_noise` measures a photo's noise variance.
+#: Intensity bins of equal pixel count in which :func:`_photo_noise` measures a photo's noise variance, at most, and
+#: the fewest residuals a bin takes (fewer bins for a small object): the 10 % quantile of 256 values of χ²₁ is within
+#: about ±25 % of its own (its standard error, √(0.1 · 0.9 / 256) / f(q), with f the density at the quantile).
 NOISE_BINS = 16
+NOISE_BIN_VALUES = 256
 #: A UV jump between neighbouring pixels larger than this many texels marks a seam (the pixel straddles two
 #: charts): its footprint is not measured by finite differences and it takes :data:`FOOTPRINT_MAX` samples.
 SEAM_TEXELS = 8.0
@@ -299,9 +302,9 @@ def _photo_noise(photo: Tensor, hit: Tensor) -> Tensor | None:
     The std is a sensor's signal-dependent noise, ``σ² = a·I + b`` (shot noise and read noise; Foi et al., "Practical
     Poissonian-Gaussian noise modeling and fitting for single-image raw-data", IEEE TIP 2008), fitted to
     :data:`NOISE_BINS` bins of equal count of the object's pixel values (3 × 3 box means, so that a pixel's own
-    noise does not choose its bin), each bin's variance read as the residual's robust
-    :data:`capture.fit.noise.NOISE_QUANTILE` quantile of ``e²`` over that quantile of χ²₁ (edges and highlights
-    inflate a few residuals, noise all of them), ``a, b ≥ 0`` by least squares relative to each bin's variance."""
+    noise does not choose its bin; fewer for a small object, :data:`NOISE_BIN_VALUES`), each bin's variance read as
+    the residual's robust :data:`capture.fit.noise.NOISE_QUANTILE` quantile of ``e²`` over that quantile of χ²₁
+    (edges and highlights inflate a few residuals, noise all of them), ``a, b ≥ 0`` by :func:`_variance_line`."""
     img = torch.nan_to_num(photo.to(torch.float64), nan=0.0, posinf=0.0, neginf=0.0)
     valid = hit & torch.isfinite(photo).all(-1)
     if int(valid.sum()) < 100:
@@ -316,32 +319,38 @@ def _photo_noise(photo: Tensor, hit: Tensor) -> Tensor | None:
     y, r = level_img[valid].reshape(-1), e[valid].reshape(-1)
     ok = torch.isfinite(r) & (y > 0)
     y, r2 = y[ok], r[ok].square()
+    if y.numel() < 100:                 # the ratio's own minimum, and every bin a handful of values
+        return None
     order = torch.argsort(y)
     level, var = [], []
-    for chunk in torch.tensor_split(order, NOISE_BINS):
+    for chunk in torch.tensor_split(order, max(1, min(NOISE_BINS, y.numel() // NOISE_BIN_VALUES))):
         q = r2[chunk]
         level.append(float(y[chunk].median()))
         var.append(float(q.kthvalue(max(1, int(NOISE_QUANTILE * q.numel()))).values) / CHI2_1_Q10)
-    I, v = torch.tensor(level, dtype=torch.float64), torch.tensor(var, dtype=torch.float64).clamp_min(1e-30)
-    a, b = _nonnegative_line(I / v, 1.0 / v)
+    a, b = _variance_line(torch.tensor(level, dtype=torch.float64), torch.tensor(var, dtype=torch.float64))
     sigma = torch.zeros_like(img)
     sigma[valid] = (a * level_img[valid] + b).clamp_min(0).sqrt()
     return sigma
 
 
-def _nonnegative_line(x: Tensor, w: Tensor) -> tuple[float, float]:
-    """``a, b ≥ 0`` minimising ``Σ (a·x + b·w − 1)²`` (a line ``a·I + b`` fitted to variances ``v`` relative to them:
-    ``x = I / v``, ``w = 1 / v``): the unconstrained solution, else the better of the two one-parameter fits."""
-    A = torch.stack([x, w], -1)
-    sol = torch.linalg.lstsq(A, torch.ones_like(x)[:, None]).solution[:, 0]
-    if bool((sol >= 0).all()):
-        return float(sol[0]), float(sol[1])
-    best = []
-    for i, c in enumerate((x, w)):
-        coef = float(c.sum() / (c * c).sum())
-        best.append((float(((coef * c - 1) ** 2).sum()), i, coef))
-    _, i, coef = min(best)
-    return (coef, 0.0) if i == 0 else (0.0, coef)
+def _variance_line(level: Tensor, var: Tensor) -> tuple[float, float]:
+    """``a, b ≥ 0`` of the line ``a·I + b`` through bins' noise variances ``var`` at levels ``level``: weighted least
+    squares with weights ``1 / (a·I + b)²`` — each bin's error relative to the line's own variance there, three
+    rounds from the median — and, when the unconstrained line has a negative coefficient, the better of the two
+    one-parameter lines. Relative to the *measured* variances instead, the bins read low by chance would pull the
+    line down (a strip of 38 noisy pixels read σ 0.003 for 0.05)."""
+    ab = (0.0, float(var.median()))
+    for _ in range(3):
+        w = 1.0 / (ab[0] * level + ab[1]).clamp_min(1e-30)
+        cands = []
+        sol = torch.linalg.lstsq(torch.stack([level, torch.ones_like(level)], -1) * w[:, None],
+                                 (var * w)[:, None]).solution[:, 0]
+        if bool((sol >= 0).all()):
+            cands.append((float(sol[0]), float(sol[1])))
+        cands.append((0.0, float((var * w * w).sum() / (w * w).sum())))
+        cands.append((float((level * var * w * w).sum() / (level * level * w * w).sum().clamp_min(1e-300)), 0.0))
+        ab = min(cands, key=lambda c: float((((c[0] * level + c[1] - var) * w) ** 2).sum()))
+    return ab
 
 
 def footprint_max(psf_sigma: float = 0.0, cap: int = FOOTPRINT_MAX) -> int:
