@@ -19,7 +19,7 @@ one-ray-per-pixel renders.
      relative second difference across the pixel, read off the photo itself
      (``max(|I(x+1) + I(x−1) − 2 I(x)|, same in y) / I``), so ``k = ceil(sqrt(c / (24 · FOOTPRINT_TOLERANCE)))``.
      In a photo noisier than the fit's noise model the part of each difference its measured noise explains is left
-     out (:func:`_photo_noise`, :func:`_curvature`): noise is not curvature;
+     out (:func:`photo_noise`, :func:`_curvature`): noise is not curvature;
    * **texture sub-samples**, for the maps: ``kt = ceil(f / FOOTPRINT_SPACING)``, so that neighbouring samples are
      at most :data:`FOOTPRINT_SPACING` texels apart, capped at :data:`FOOTPRINT_TEXTURE_MAX` (they cost no ray, only
      operator entries). A pixel much smaller than a texel needs one: the maps are
@@ -66,7 +66,8 @@ from renderer.shading import prepare
 from .fit.noise import CHI2_1_Q10, NOISE_QUANTILE, noise_ratio
 from .observations import ObservationError, Observations, TexelTaps, ViewExtractor, noise_residual
 
-__all__ = ["PixelFootprints", "observe_footprints", "footprint_counts", "texture_footprints", "FOOTPRINT_SPACING",
+__all__ = ["PixelFootprints", "observe_footprints", "footprint_counts", "photo_noise", "texture_footprints",
+           "FOOTPRINT_SPACING",
            "FOOTPRINT_MAX", "FOOTPRINT_TEXTURE_MAX", "SEAM_TEXELS"]
 
 #: Largest distance (texels) between neighbouring sub-pixel samples: half a texel, so that every texel a pixel
@@ -107,7 +108,7 @@ FOOTPRINT_TOLERANCE = 2.5e-4
 #: without them (σ ∝ the signal) 1.5 M rays and visible-highlight f0 0.0300 → 0.0342; 1.5 σ without them 3.0 M rays,
 #: 0.0336 (docs/log.md, "noisy photos' ray counts").
 CURVATURE_NOISE_Z = 3.0
-#: Intensity bins of equal pixel count in which :func:`_photo_noise` measures a photo's noise variance, at most, and
+#: Intensity bins of equal pixel count in which :func:`photo_noise` measures a photo's noise variance, at most, and
 #: the fewest residuals a bin takes (fewer bins for a small object): the 10 % quantile of 256 values of χ²₁ has a
 #: standard error of 38 % of itself (√(0.1 · 0.9 / 256) / f(q), f the density at the quantile), which the line's fit
 #: over the bins averages; a bin of a 256² view's object (~30 000 values in 16 bins) about 14 %.
@@ -143,6 +144,8 @@ class PixelFootprints:
             :data:`FOOTPRINT_MAX`² per pixel would have cast on the same pixels (the saving of the adaptive count);
             texture_samples: texture sub-samples of the kept pixels (``Σ (k·m)²``), located without rays.
         psf_sigma: σ (pixels) of the Gaussian PSF in the pixel filter (0: the box alone).
+        noisy_views: views whose photo was noisier than the noise model, its noise left out of the ray counts
+            (:func:`photo_noise`).
     """
 
     samples: Observations
@@ -159,6 +162,7 @@ class PixelFootprints:
     uniform_rays: int = 0
     psf_sigma: float = 0.0
     texture_samples: int = 0
+    noisy_views: int = 0
 
     @property
     def n_pixels(self) -> int:
@@ -224,7 +228,8 @@ class PixelFootprints:
             radiance=self.radiance[keep], view=self.view[keep], pixel=self.pixel[keep],
             counts=self.counts[keep], noise_residual=self.noise_residual[keep],
             footprint_texels=self.footprint_texels[keep], drops=dict(self.drops), cast_rays=self.cast_rays,
-            uniform_rays=self.uniform_rays, psf_sigma=self.psf_sigma, texture_samples=self.texture_samples)
+            uniform_rays=self.uniform_rays, psf_sigma=self.psf_sigma, texture_samples=self.texture_samples,
+            noisy_views=self.noisy_views)
 
 
 def _grad_len(uv: Tensor, hit: Tensor, depth: Tensor, map_size: tuple[int, int]) -> tuple[Tensor, Tensor]:
@@ -276,7 +281,7 @@ def _curvature(photo: Tensor, sigma: Tensor | None = None) -> Tensor:
     """``[H, W]`` relative second difference of a photo ``[H, W, 3]`` across each pixel (module docstring), the
     largest over x, y and the channels; 0 where a neighbour is missing or non-finite.
 
-    With the photo's noise std ``sigma [H, W, 3]`` (:func:`_photo_noise`), the part of each difference its noise
+    With the photo's noise std ``sigma [H, W, 3]`` (:func:`photo_noise`), the part of each difference its noise
     explains — :data:`CURVATURE_NOISE_Z` times its std, ``√6 σ`` — is left out, and the second differences of the
     photo smoothed by a 3 × 3 box, two pixels apart and divided by 4 (std ``√(10/27) σ / 4``, the same less its
     noise), are taken too: curvature broader than a pixel that the noise hides in the pixel's own difference."""
@@ -293,7 +298,7 @@ def _curvature(photo: Tensor, sigma: Tensor | None = None) -> Tensor:
     return c
 
 
-def _photo_noise(photo: Tensor, hit: Tensor) -> Tensor | None:
+def photo_noise(photo: Tensor, hit: Tensor) -> Tensor | None:
     """``[H, W, 3]`` noise std of a photo ``[H, W, 3]`` at its object pixels ``hit [H, W]`` (0 elsewhere), or None
     when the photo is no noisier than the default noise model (:data:`capture.fit.noise.NOISE`, 1 % of the signal —
     whatever ``noise`` a fit is given: the question is whether noise could pass for curvature;
@@ -361,8 +366,8 @@ def footprint_max(psf_sigma: float = 0.0, cap: int = FOOTPRINT_MAX) -> int:
     return min(16, math.ceil(cap * footprint_extent(psf_sigma) - 1e-9))
 
 
-def footprint_counts(gbuffer, map_size: tuple[int, int],
-                     photo: Tensor | None = None, psf_sigma: float = 0.0) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def footprint_counts(gbuffer, map_size: tuple[int, int], photo: Tensor | None = None, psf_sigma: float = 0.0,
+                     noise: Tensor | None | str = "measure") -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per pixel of a pixel-centre G-buffer: which pixels to cast, their ray count ``k``, their texture sample
     count ``kt`` and texel footprint ``f`` (module docstring, step 2).
 
@@ -374,7 +379,8 @@ def footprint_counts(gbuffer, map_size: tuple[int, int],
     pixels next to them (a pixel whose centre misses may still be partly covered; it is cast at the cap so that the
     coverage test sees it, and dropped as partial). ``k`` is the shading's need (the photo's curvature; the cap on
     edges), ``kt ≥ k`` the texture's (on edges ``kt = k``): each ray's stratum is read at ``ceil(kt / k)²`` texture
-    sub-samples."""
+    sub-samples. ``noise``: the photo's noise std ``[H, W, 3]`` left out of its curvature (:func:`_curvature`), None
+    for none, or ``"measure"`` (default) for :func:`photo_noise` of the photo at the G-buffer's object pixels."""
     H, W = gbuffer.height, gbuffer.width
     hit = torch.zeros(H * W, dtype=torch.bool)
     uv = torch.zeros(H * W, 2, dtype=torch.float64)
@@ -388,7 +394,11 @@ def footprint_counts(gbuffer, map_size: tuple[int, int],
     kt = torch.ceil(f * extent / FOOTPRINT_SPACING)
     k = torch.ones_like(kt)
     if photo is not None:
-        curvature = _curvature(photo, _photo_noise(photo, hit2))
+        if isinstance(noise, str):
+            if noise != "measure":
+                raise ObservationError(f"footprint_counts: noise must be a tensor, None or 'measure', got {noise!r}")
+            noise = photo_noise(photo, hit2)
+        curvature = _curvature(photo, noise)
         k = torch.ceil(extent * torch.sqrt(curvature / (24.0 * FOOTPRINT_TOLERANCE)))
     k = k.clamp(1, kmax).long()
     k = torch.where(edge, torch.full_like(k, kmax), k)
@@ -512,7 +522,11 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
     def one(vi):
         # one view's rays, texture footprints and shading terms, made into its kept samples at once: the prepared
         # rays of all views held until every view was made took twice the samples' memory more
-        pixels, k, kt, f = footprint_counts(centre_gbuffers[vi], map_size, photos[vi], psf_sigma)
+        g0 = centre_gbuffers[vi]
+        hit = torch.zeros(g0.height * g0.width, dtype=torch.bool)
+        hit[g0.pixel] = True
+        sigma = photo_noise(photos[vi], hit.reshape(g0.height, g0.width))
+        pixels, k, kt, f = footprint_counts(g0, map_size, photos[vi], psf_sigma, noise=sigma)
         g = render_footprint(mesh, cameras[vi], pixels, k, psf_sigma=psf_sigma)
         cast = int((k * k).sum())
         # a pixel is whole when all its rays hit the object facing the camera
@@ -542,10 +556,10 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         valid[kept] = True
         photo = torch.nan_to_num(photos[vi].to(part.columns["radiance"].dtype), nan=0.0, posinf=0.0, neginf=0.0)
         noise = noise_residual(photo, valid.reshape(g.height, g.width)).reshape(-1, 3)[kept]
-        return part, kk, ff, noise, cast, uniform, partial, sub
+        return part, kk, ff, noise, cast, uniform, partial, sub, int(sigma is not None)
 
     parts, counts, fps, noises, *tallies = zip(*per_view(one, n), strict=True)
-    cast, uniform, partial, sub = (sum(t) for t in tallies)
+    cast, uniform, partial, sub, noisy = (sum(t) for t in tallies)
     samples = extractor.observations(list(parts), lights=lights, bilinear=True)
     del parts
     # group the kept samples by (view, pixel): every sample of a kept pixel survives (only unlit ones are dropped,
@@ -574,7 +588,7 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
     return PixelFootprints(samples=samples, group=group, share=share, radiance=samples.radiance[first].clone(),
                            view=view, pixel=pixel, counts=counts_r, noise_residual=noise, footprint_texels=foot_r,
                            drops=drops, cast_rays=cast, uniform_rays=uniform, psf_sigma=float(psf_sigma),
-                           texture_samples=sub)
+                           texture_samples=sub, noisy_views=noisy)
 
 
 def sampled_map_size(fp: PixelFootprints, min_size: int = 1) -> int:

@@ -866,7 +866,7 @@ def _report_samples(report: Report, data: _Loaded, seen: _Observed, footprint: b
                                           strict=True)),
             "rays_cast": fp_all.cast_rays, "rays_saved_vs_uniform": saving(fp_all),
             "texture_samples": fp_all.texture_samples, "drops": fp_all.drops,
-            "psf_sigma": float(psf)}
+            "psf_sigma": float(psf), "noisy_views": fp_all.noisy_views}
     if data.held_views:
         report.samples.update(heldout_views=data.held_views, heldout_samples=seen.held_obs.n_samples,
                               fitted_samples=seen.obs.n_samples)
@@ -1540,7 +1540,9 @@ def _summary(r: Report) -> str:
                      f"(per pixel: " + ", ".join(f"{k}: {v}" for k, v in fps["samples_per_pixel"].items())
                      + f"; {fps['rays_saved_vs_uniform']:.0%} fewer than 16 per pixel) reading the maps at "
                      f"{fps.get('texture_samples', 0)} texture sub-samples; fit χ² per residual "
-                     f"{r.fit.get('chi2_per_residual', float('nan')):.3g}")
+                     f"{r.fit.get('chi2_per_residual', float('nan')):.3g}"
+                     + (f"; in {fps['noisy_views']} of {r.samples.get('views')} views the photo's noise (σ² = a·I + b, "
+                        f"measured) is not taken for shading curvature" if fps.get("noisy_views") else ""))
     saved = r.skipped.get("time_saved_estimate_s", {})
     skips = [f"parameters not allocated: {', '.join(r.skipped['parameters_not_allocated']) or 'none'}"] \
         if "parameters_not_allocated" in r.skipped else []

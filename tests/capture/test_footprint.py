@@ -812,9 +812,9 @@ def test_a_noisy_photo_asks_the_rays_its_shading_needs_not_its_noise():
     bump = 0.2 + 2.0 * torch.exp(-((xx - 19.5) ** 2 + (yy - 19.5) ** 2) / 50.0)
     gen = torch.Generator().manual_seed(0)
 
-    def counts(base, sigma):
+    def counts(base, sigma, noise="measure"):
         img = (base + sigma * torch.randn(H, H, generator=gen, dtype=torch.float64))[..., None].expand(H, H, 3)
-        pixels, k, _, _ = footprint_counts(g, (8, 8), img.float())
+        pixels, k, _, _ = footprint_counts(g, (8, 8), img.float(), noise=noise)
         r, c = pixels // H, pixels % H
         inner = torch.isin(pixels, g.pixel) & ((r - 19.5).abs() < 12) & ((c - 19.5).abs() < 12)
         peak = inner & ((r - 19.5) ** 2 + (c - 19.5) ** 2 < 9)
@@ -824,25 +824,28 @@ def test_a_noisy_photo_asks_the_rays_its_shading_needs_not_its_noise():
     assert (counts(flat, 0.0)[0] == 1).all()
     for sigma in (0.01, 0.03):
         assert float((counts(flat, sigma)[0] == 1).double().mean()) > 0.9
+        assert float((counts(flat, sigma, noise=None)[0] == 1).double().mean()) < 0.1   # the noise read as curvature
+    with pytest.raises(ObservationError, match="noise must be"):
+        footprint_counts(g, (8, 8), flat[..., None].expand(H, H, 3).float(), noise="estimate")
     assert (counts(bump, 0.0)[1] == 3).all()                  # the noise-free photo: its shading's own need
     assert (counts(bump, 0.01)[1] == 3).all()
     assert (counts(bump, 0.03)[1] >= 2).all()
 
 
-def test_photo_noise_is_measured_as_shot_and_read_noise():
+def testphoto_noise_is_measured_as_shot_and_read_noise():
     """A smooth ramp of values 0.05–2 with Poisson-Gaussian noise σ² = a·I + b (a = 2e-4: a 5 000 e⁻ full well at 1;
     b = (2e-3)²): the measured σ within 15 % of the truth at every pixel (measured: 6.3 % at most; 3–8.5 % over four
     noise draws); the noise-free ramp is no noisier than the fit's noise model, so nothing is subtracted (None)."""
-    from capture.footprint import _photo_noise
+    from capture.footprint import photo_noise
 
     H = 128
     ramp = torch.linspace(0.05, 2.0, H, dtype=torch.float64)[None, :, None].expand(H, H, 3)
-    assert _photo_noise(ramp, torch.ones(H, H, dtype=torch.bool)) is None
+    assert photo_noise(ramp, torch.ones(H, H, dtype=torch.bool)) is None
     a, b = 2e-4, 2e-3 ** 2
     sigma = (a * ramp + b).sqrt()
     gen = torch.Generator().manual_seed(1)
     noisy = ramp + sigma * torch.randn(H, H, 3, generator=gen, dtype=torch.float64)
-    est = _photo_noise(noisy, torch.ones(H, H, dtype=torch.bool))
+    est = photo_noise(noisy, torch.ones(H, H, dtype=torch.bool))
     inner = (slice(2, -2), slice(2, -2))                      # the box means' border columns read fewer pixels
     assert float((est[inner] / sigma[inner] - 1).abs().max()) < 0.15
 
@@ -869,24 +872,27 @@ def test_shot_noise_on_the_mitsuba_torus_costs_no_rays(mitsuba_scene, tmp_path):
     clean = reconstruct(src, "lambert", tmp_path / "clean", progress=False)
     r = reconstruct(noisy, "lambert", tmp_path / "r", progress=False)
     assert r.samples["footprints"]["samples"] <= 1.1 * clean.samples["footprints"]["samples"]
+    # every view's noise was measured and said so; the noise-free photos' were not
+    assert r.samples["footprints"]["noisy_views"] == 8 and clean.samples["footprints"]["noisy_views"] == 0
+    assert "in 8 of 8 views the photo's noise" in (tmp_path / "r" / "summary.txt").read_text()
     assert r.errors["maps_by_texel_set"]["well_lit"]["albedo"] < 0.02
 
 
-def test_photo_noise_of_a_few_pixels_or_a_flat_noiseless_photo_is_none():
+def testphoto_noise_of_a_few_pixels_or_a_flat_noiseless_photo_is_none():
     """Too few object pixels to measure (the noise ratio needs 100 values) and a flat, noise-free photo: no noise is
     subtracted, whatever the photo's values. A noisy strip three pixels high has 38 pixels with a whole 3 × 3
     neighbourhood (114 residuals): its noise is measured in bins of 7 values, finite, about the true 0.05."""
-    from capture.footprint import _photo_noise
+    from capture.footprint import photo_noise
 
     H = 64
     gen = torch.Generator().manual_seed(2)
     noisy = 0.5 + 0.05 * torch.randn(H, H, 3, generator=gen, dtype=torch.float64)
     few = torch.zeros(H, H, dtype=torch.bool)
     few[10:15, 10:15] = True                                   # 25 pixels
-    assert _photo_noise(noisy, few) is None
-    assert _photo_noise(torch.full((H, H, 3), 0.5, dtype=torch.float64), torch.ones(H, H, dtype=torch.bool)) is None
+    assert photo_noise(noisy, few) is None
+    assert photo_noise(torch.full((H, H, 3), 0.5, dtype=torch.float64), torch.ones(H, H, dtype=torch.bool)) is None
     strip = torch.zeros(H, H, dtype=torch.bool)
     strip[20:23, 5:45] = True
-    est = _photo_noise(noisy, strip)
+    est = photo_noise(noisy, strip)
     assert est is not None and bool(torch.isfinite(est).all()) and bool((est[~strip] == 0).all())
     assert 0.03 < float(est[strip].median()) < 0.08
