@@ -151,3 +151,18 @@ def test_binned_mitsuba_torus_is_explained_and_its_albedo_recovered(mitsuba_scen
     assert r.fit["chi2_per_residual"] < 0.5 and min(v["psnr"] for v in r.views) > 50.0
     well_lit = r.errors["maps_by_texel_set"]["well_lit"]
     assert well_lit["texels"] > 1500 and well_lit["albedo"] < 0.045
+
+
+def test_srgb_photos_are_binned_in_linear_radiance(tmp_path):
+    """An 8-bit sRGB photo whose 2 × 2 blocks hold black and white pixels: the binned pixel is their mean radiance,
+    0.5 — binning the codes (127.5 → 0.212 decoded) would be the wrong light."""
+    pose = look_at((0.0, -3.0, 0.0))
+    cam = Camera(torch.tensor([[8.0, 0.0, 4.0], [0.0, 8.0, 3.0], [0.0, 0.0, 1.0]]), pose.R, pose.t, 8, 6)
+    img = torch.zeros(6, 8, 3)
+    img[0::2, 0::2] = 0.9      # below the saturation level (255): no block is clipped
+    img[1::2, 1::2] = 0.9
+    view = View(cam, [PointLight(torch.tensor([0.0, -3.0, 0.0]), torch.ones(3))])
+    path = write_dataset(tmp_path / "ds", uv_sphere(segments=16, rings=8), [view], [img], encoding="srgb", bits=8)
+    photo = load_dataset(path).binned(2).load_images(dtype=torch.float64)[0]
+    assert photo.radiance.shape == (3, 4, 3) and not bool(photo.saturated.any())
+    assert torch.allclose(photo.radiance, torch.full((3, 4, 3), 0.45, dtype=torch.float64), atol=2e-3)
