@@ -293,9 +293,13 @@ def _curvature(photo: Tensor, sigma: Tensor | None = None) -> Tensor:
         return c
     z = CURVATURE_NOISE_Z * sigma.to(torch.float64)
     _second_differences(img, 1, z * math.sqrt(6.0), c, ref)
-    smooth = F.avg_pool2d(img.permute(2, 0, 1)[None], 3, stride=1, padding=1, count_include_pad=False)[0]
-    _second_differences(smooth.permute(1, 2, 0), 2, z * math.sqrt(10.0 / 27.0), c, ref)
+    _second_differences(_box_mean(img), 2, z * math.sqrt(10.0 / 27.0), c, ref)
     return c
+
+
+def _box_mean(img: Tensor) -> Tensor:
+    """``[H, W, C]`` the 3 × 3 box mean of ``img [H, W, C]`` (over the pixels inside the image at its border)."""
+    return F.avg_pool2d(img.permute(2, 0, 1)[None], 3, stride=1, padding=1, count_include_pad=False)[0].permute(1, 2, 0)
 
 
 def photo_noise(photo: Tensor, hit: Tensor) -> Tensor | None:
@@ -320,8 +324,7 @@ def photo_noise(photo: Tensor, hit: Tensor) -> Tensor | None:
     if ratio is None or ratio <= 1.0:
         return None
     # the levels of the 3 × 3 box mean: a pixel's own value would sort its own noise into the bins
-    level_img = F.avg_pool2d(img.permute(2, 0, 1)[None], 3, stride=1, padding=1, count_include_pad=False)[0]
-    level_img = level_img.permute(1, 2, 0)
+    level_img = _box_mean(img)
     y, r = level_img[valid].reshape(-1), e[valid].reshape(-1)
     ok = torch.isfinite(r) & (y > 0)
     y, r2 = y[ok], r[ok].square()

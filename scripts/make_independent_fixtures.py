@@ -322,17 +322,23 @@ def _describe(bsdf: dict) -> dict:
     return {k: (maps.get(k, "bitmap") if isinstance(v, dict) else v) for k, v in bsdf.items()}
 
 
-def make_fixture(fx: FixtureScene, out_dir: Path, spp: int, overwrite: bool = True, views: int | None = None,
-                 log=print) -> Path:
-    """Build the scene with shadecap, render every view with Mitsuba, write the dataset folder."""
-    mi = import_mitsuba()
-    cfg = fx.config if views is None else replace(fx.config, n_views=views)
+def _mitsuba_scene(mi, fx: FixtureScene, cfg: SyntheticConfig) -> tuple[Scene, list, list]:
+    """The scene of ``cfg`` built by shadecap (with the fixture's own albedo, if any), its BSDF passes and one
+    Mitsuba shape per pass."""
     scene: Scene = build_scene(cfg)
     if fx.albedo is not None:
         old = scene.maps["albedo"]
         scene = replace(scene, maps={**scene.maps, "albedo": fx.albedo(old.shape[0]).to(old)})
     passes = bsdf_passes(mi, scene.model_spec, scene.maps)
-    shapes = [mitsuba_mesh(mi, scene.mesh, bsdf, name=f"object-{name}") for name, bsdf in passes]
+    return scene, passes, [mitsuba_mesh(mi, scene.mesh, bsdf, name=f"object-{name}") for name, bsdf in passes]
+
+
+def make_fixture(fx: FixtureScene, out_dir: Path, spp: int, overwrite: bool = True, views: int | None = None,
+                 log=print) -> Path:
+    """Build the scene with shadecap, render every view with Mitsuba, write the dataset folder."""
+    mi = import_mitsuba()
+    cfg = fx.config if views is None else replace(fx.config, n_views=views)
+    scene, passes, shapes = _mitsuba_scene(mi, fx, cfg)
     images, seconds = [], []
     for i, view in enumerate(scene.views):
         t0 = time.perf_counter()
@@ -370,26 +376,17 @@ BINNED_BIN = 2
 BINNED_VIEWS = 3
 
 
-def make_binned_references(folder: Path, spp: int, k: int = BINNED_BIN, views: int = BINNED_VIEWS,
+def make_binned_references(fx: FixtureScene, folder: Path, spp: int, k: int = BINNED_BIN, views: int = BINNED_VIEWS,
                            log=print) -> Path:
-    """Render the first ``views`` views of the scene in ``folder`` (one of :func:`fixture_scenes`) with Mitsuba
+    """Render the first ``views`` views of the scene ``fx``, whose fixture is ``folder``, with Mitsuba
     through its cameras binned ``k × k`` (:meth:`renderer.camera.Camera.binned`) into ``folder/binned-k/``:
     ``NNN.exr`` (half-float radiance) and ``cameras.json`` (the binned cameras). A photo binned by
     :meth:`capture.dataset.Dataset.binned` must equal these up to Mitsuba's sampling noise: the check of the
     binned camera's convention against a renderer that shares no code with shadecap."""
     from renderer.imageio import write_exr
 
-    name = folder.name
-    fx = {s.name: s for s in fixture_scenes()}.get(name)
-    if fx is None:
-        raise ValueError(f"{folder} is none of the scenes {[s.name for s in fixture_scenes()]}")
     mi = import_mitsuba()
-    scene: Scene = build_scene(fx.config)
-    if fx.albedo is not None:
-        old = scene.maps["albedo"]
-        scene = replace(scene, maps={**scene.maps, "albedo": fx.albedo(old.shape[0]).to(old)})
-    passes = bsdf_passes(mi, scene.model_spec, scene.maps)
-    shapes = [mitsuba_mesh(mi, scene.mesh, bsdf, name=f"object-{n}") for n, bsdf in passes]
+    scene, _, shapes = _mitsuba_scene(mi, fx, fx.config)
     out = folder / f"binned-{k}"
     out.mkdir(exist_ok=True)
     cameras = []
@@ -398,7 +395,7 @@ def make_binned_references(folder: Path, spp: int, k: int = BINNED_BIN, views: i
         rad = render_view(mi, shapes, cam, view.lights, spp, seed=1000 + i)
         write_exr(out / f"{i:03d}.exr", torch.from_numpy(view.exposure * rad).float(), half=True)
         cameras.append(cam.to_dict())
-        log(f"  {name}: view {i} binned {k}×{k} → {cam.width}×{cam.height}")
+        log(f"  {fx.name}: view {i} binned {k}×{k} → {cam.width}×{cam.height}")
     (out / "cameras.json").write_text(json.dumps({"bin": k, "spp": spp, "renderer": f"mitsuba {mi.__version__} "
                                                  f"({VARIANT})", "cameras": cameras}, indent=1) + "\n")
     return out
@@ -445,7 +442,7 @@ def main(argv=None) -> int:
     if args.binned:
         for fx in fixture_scenes():
             if (Path(args.binned) / fx.name / "scene.json").is_file() and (not args.only or fx.name in args.only):
-                print(f"{fx.name}: wrote {make_binned_references(Path(args.binned) / fx.name, args.spp)}")
+                print(f"{fx.name}: wrote {make_binned_references(fx, Path(args.binned) / fx.name, args.spp)}")
         return 0
     if not args.out:
         ap.error("--out is required (or --check FOLDER)")
