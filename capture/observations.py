@@ -140,7 +140,8 @@ class Observations:
         radiance: ``[S, 3]`` measured linear radiance (photo / exposure), ≥ 0 in practice.
         weight: ``[S]`` per-sample weight (1 by default; a noise model may lower it).
         pair_sample: ``[Q]`` int64 sample index of each (sample, light) pair.
-        pair_light: ``[Q]`` int64 index of the light among the scene's lights.
+        pair_light: ``[Q]`` int32 index of the light among the scene's lights (−1: none of them; read by nothing in
+            the fit: 32 bits are half the bytes of a 64-bit index on every (sample, light) pair).
         angles: :class:`materials.Angles` of the pairs, each cosine ``[Q, 1]``.
         irradiance: ``[Q, 3]`` E·V of the pairs (visibility included).
         view: ``[S]`` int64 view index; pixel: ``[S]`` int64 flat pixel index y·W + x in its view.
@@ -602,7 +603,7 @@ class ViewExtractor:
             p["sample"] = p["sample"] + o
         for lts, p in zip((q.term_lights for q in parts), pairs, strict=True):
             table = [light_id.get(id(x), -1) for x in lts] or [-1]
-            p["term"] = torch.tensor(table, dtype=torch.long, device=p["term"].device)[p["term"]]
+            p["term"] = torch.tensor(table, dtype=torch.int32, device=p["term"].device)[p["term"]]
         pair_sample, pair_light, irradiance = (_take(pairs, f) for f in ("sample", "term", "irradiance"))
         angles = Angles(*(_take(pairs, f) for f in _ANGLE_FIELDS))
         envs_all: dict[int, tuple] = {}
@@ -719,7 +720,7 @@ def synthetic_observations(model: Model, maps: Mapping[str, Tensor], samples_per
         pick = torch.rand(S, 1, generator=gen, dtype=dtype) < highlight_fraction
         l = torch.where(pick, near, l)
         ps.append(torch.arange(S))
-        pl.append(torch.full((S,), k, dtype=torch.long))
+        pl.append(torch.full((S,), k, dtype=torch.int32))
         ang.append(Angles.from_vectors(n, l, v))
     angles = Angles(*(torch.cat([getattr(a, f) for a in ang]) for f in ("nl", "nv", "nh", "lh", "lv")))
     Q = S * n_lights

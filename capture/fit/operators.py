@@ -585,7 +585,7 @@ class PixelOperator:
             self._pattern = None                # (the old index arrays freed before the new ones are built)
             cs, ps = torch.nonzero(mask, as_tuple=True)
             itype = torch.int32 if max(3 * self.R, P * self.T, E * k) < 2 ** 31 else torch.long
-            perm = self.tex_order.long()                        # the entries in texel order
+            perm = self.tex_order               # the entries in texel order (32-bit where E fits: 0.13 GB less)
             by_pix = _Placement.of(self.pix_crow, self.e_pix, None, cs, 3)
             by_tex = _Placement.of(self.tex_crow, self.e_tex[perm], perm, ps, P)
             col_a = by_pix.scatter(lambda a, b: self.e_tex[a:b, None].long() * P + ps[None],
