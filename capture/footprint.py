@@ -369,6 +369,13 @@ def footprint_max(psf_sigma: float = 0.0, cap: int = FOOTPRINT_MAX) -> int:
     return min(16, math.ceil(cap * footprint_extent(psf_sigma) - 1e-9))
 
 
+def _object_pixels(gbuffer) -> Tensor:
+    """``[H, W]`` bool: the pixels of a pixel-centre G-buffer whose centre ray hits the object."""
+    hit = torch.zeros(gbuffer.height * gbuffer.width, dtype=torch.bool)
+    hit[gbuffer.pixel] = True
+    return hit.reshape(gbuffer.height, gbuffer.width)
+
+
 def footprint_counts(gbuffer, map_size: tuple[int, int], photo: Tensor | None = None, psf_sigma: float = 0.0,
                      noise: Tensor | None | str = "measure") -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per pixel of a pixel-centre G-buffer: which pixels to cast, their ray count ``k``, their texture sample
@@ -385,13 +392,12 @@ def footprint_counts(gbuffer, map_size: tuple[int, int], photo: Tensor | None = 
     sub-samples. ``noise``: the photo's noise std ``[H, W, 3]`` left out of its curvature (:func:`_curvature`), None
     for none, or ``"measure"`` (default) for :func:`photo_noise` of the photo at the G-buffer's object pixels."""
     H, W = gbuffer.height, gbuffer.width
-    hit = torch.zeros(H * W, dtype=torch.bool)
     uv = torch.zeros(H * W, 2, dtype=torch.float64)
     depth = torch.zeros(H * W, dtype=torch.float64)
-    hit[gbuffer.pixel] = True
     uv[gbuffer.pixel] = gbuffer.uv.to(torch.float64)
     depth[gbuffer.pixel] = gbuffer.depth.to(torch.float64)
-    hit2 = hit.reshape(H, W)
+    hit2 = _object_pixels(gbuffer)
+    hit = hit2.reshape(-1)
     f, edge = _grad_len(uv.reshape(H, W, 2), hit2, depth.reshape(H, W), map_size)
     extent, kmax = footprint_extent(psf_sigma), footprint_max(psf_sigma)
     kt = torch.ceil(f * extent / FOOTPRINT_SPACING)
@@ -526,9 +532,7 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         # one view's rays, texture footprints and shading terms, made into its kept samples at once: the prepared
         # rays of all views held until every view was made took twice the samples' memory more
         g0 = centre_gbuffers[vi]
-        hit = torch.zeros(g0.height * g0.width, dtype=torch.bool)
-        hit[g0.pixel] = True
-        sigma = photo_noise(photos[vi], hit.reshape(g0.height, g0.width))
+        sigma = photo_noise(photos[vi], _object_pixels(g0))
         pixels, k, kt, f = footprint_counts(g0, map_size, photos[vi], psf_sigma, noise=sigma)
         g = render_footprint(mesh, cameras[vi], pixels, k, psf_sigma=psf_sigma)
         cast = int((k * k).sum())
