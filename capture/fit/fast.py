@@ -19,10 +19,11 @@ from renderer.device import release_memory
 from ..observations import Observations
 from .joint import refine_joint
 from .layout import ACC, FitResult, Layout, SolverError, from_canonical, param_groups
-from .noise import check_noise, default_delta, noise_floor
+from .noise import check_noise, default_delta, noise_floor, photo_noise_ratio
 from .observability import anchors_at, determined, finalize, find_anchors, posterior_std, pull_push, tile_seeds
 from .operators import pixel_operator
 from .options import FitOptions
+from .proposals import neighbour_proposals
 from .sharing import material_targets, share_materials, shared_default, unmatched_texels
 from .texel import (
     BILINEAR_LM_MIN,
@@ -349,11 +350,18 @@ def _footprint_stage(fit: _Fit, theta: Tensor, footprints, share: bool,
         # mixes texels or a highlight; the first steps run untied, the materials are re-estimated from
         # the anchors' footprint fits, and the tie resumes to those
         theta, finfo_free = footprint_steps(theta, FOOTPRINT_FREE_STEPS, 0.0)
+        pinfo = None
+        if opts.proposals:
+            theta, pinfo = neighbour_proposals(fit.model, fit.layout, theta, footprints, fit.obs.map_size,
+                                               loss=opts.loss, delta=fit.delta, noise=fit.noise,
+                                               noise_ratio=photo_noise_ratio(fit.obs, fit.noise))
         target = material_targets(fit.layout, fit.layout.canonical(theta), *sharing.material_of)
         theta, finfo = footprint_steps(theta, steps, opts.anchor_weight, target)
         finfo["joint_s"] += finfo_free["joint_s"]
         finfo["joint_history"] = finfo_free["joint_history"] + finfo["joint_history"][1:]
         finfo["joint_accepted"] = finfo_free["joint_accepted"] + finfo["joint_accepted"]
+        if pinfo is not None:
+            finfo["joint_proposals"] = pinfo
     else:
         theta, finfo = footprint_steps(theta, steps, opts.anchor_weight if share else 0.0)
     return theta, finfo

@@ -101,6 +101,9 @@ class FitOptions:
             through the sampling operators), "auto" (default) assembled unless that would take more than
             :data:`capture.fit.operators.ASSEMBLED_SHARE` of the memory available. docs/image-formation.md, "Memory",
             has the two forms' memory and time.
+        proposals: between the footprint solve's untied and tied steps, texels whose pixels stay misfit by more than
+            :data:`capture.fit.proposals.PROPOSAL_CHI2` try their neighbours' values
+            (:func:`capture.fit.proposals.neighbour_proposals`; with the sharing only). Default on.
         memory_budget: GiB of memory the process may hold (None: what the machine, or its memory cgroup, has
             available, :func:`renderer.device.available_memory`). ``jacobian="auto"`` keeps the assembled matrices
             within what the budget leaves (:func:`renderer.device.memory_headroom`); nothing else is sized by it
@@ -154,6 +157,7 @@ class FitOptions:
                                       "matrices (fastest), per sample (less memory, slower steps), or auto: "
                                       "assembled unless they would take more than half the memory available",
                          choices=JACOBIAN_FORMS)
+    proposals: bool = True
     memory_budget: float | None = _cli(None, float, "GiB of memory the reconstruction may hold (default: what the "
                                                     "machine, or its memory cgroup, has available): the footprint "
                                                     "solve's auto Jacobian stays within it; the summary warns when "
@@ -191,6 +195,8 @@ class FitOptions:
         if sampling not in ("nearest", "bilinear"):
             raise SolverError(f"sampling must be 'nearest' or 'bilinear', got {sampling!r}")
         check_jacobian_form(self.jacobian)
+        if not isinstance(self.proposals, bool):
+            raise SolverError(f"proposals must be True or False, got {self.proposals!r}")
         budget = self.memory_budget
         if budget is not None and (isinstance(budget, bool) or not isinstance(budget, (int, float))
                                    or not (budget > 0 and math.isfinite(budget))):
