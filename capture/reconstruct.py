@@ -1576,6 +1576,10 @@ def _summary(r: Report) -> str:
         lines.append(f"the materials from so few texels missed the photos by {retry['data_cost'] / floor:.0f}× "
                      f"their noise; seeded again from {retry['anchors']} texels (thresholds × {retry['factor']:g}): "
                      f"kept {kept}")
+    prop = r.fit.get("footprint_proposals")
+    if prop and prop.get("moved"):
+        lines.append(f"{prop['moved']} moves of {prop['candidates']} texels the footprint steps left misfit to nearby "
+                     f"values (material borders): data cost {prop['cost_before']:.3g} → {prop['cost_after']:.3g}")
     ratio = r.fit.get("photo_noise_ratio")
     if ratio is not None and ratio > 1:
         lines.append(f"photo noise: {math.sqrt(ratio):.1f}× the noise model's std (measured in image space); the "
