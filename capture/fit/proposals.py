@@ -57,6 +57,14 @@ def _texel_means(op: PixelOperator, per_pixel: Tensor) -> tuple[Tensor, Tensor]:
     return num, op.texel_sum(w)
 
 
+def _shifted(rows: Tensor, cols: Tensor, d_row: int, d_col: int, H: int, W: int) -> tuple[Tensor, Tensor]:
+    """``(inside, index)``: whether the texels at ``(rows + d_row, cols + d_col)`` lie on the ``H × W`` map, and their
+    flat indices (clamped to the map where they do not)."""
+    r2, c2 = rows + d_row, cols + d_col
+    inside = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
+    return inside, r2.clamp(0, H - 1) * W + c2.clamp(0, W - 1)
+
+
 def neighbour_proposals(model: Model, layout: Layout, theta: Tensor, op: PixelOperator, map_size: tuple[int, int], *,
                         loss: str, delta: float, noise, noise_ratio: float | None,
                         threshold: float = PROPOSAL_CHI2) -> tuple[Tensor, dict]:
@@ -133,10 +141,8 @@ def neighbour_proposals(model: Model, layout: Layout, theta: Tensor, op: PixelOp
         for dr, dc in PROPOSAL_OFFSETS[:4]:
             found = torch.full_like(idx, -1)
             for step in range(1, WALK + 1):
-                r2, c2 = rows[idx] + step * dr, cols[idx] + step * dc
-                ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W) & (found < 0)
-                src = r2.clamp(0, H - 1) * W + c2.clamp(0, W - 1)
-                hit = ok & seen[src] & (num[src] <= EXPLAINED_CHI2 * 3.0 * den[src])
+                ok, src = _shifted(rows[idx], cols[idx], step * dr, step * dc, H, W)
+                hit = ok & (found < 0) & seen[src] & (num[src] <= EXPLAINED_CHI2 * 3.0 * den[src])
                 found = torch.where(hit, src, found)
             has = found >= 0
             dist = (canon[found.clamp_min(0)] - canon[idx]).square().sum(-1)
@@ -160,9 +166,7 @@ def neighbour_proposals(model: Model, layout: Layout, theta: Tensor, op: PixelOp
             own = prices(cur, members)[idx]                 # the cost of the pixels reading each member
             best_src = torch.full((idx.numel(),), -1, dtype=torch.long, device=y.device)
             for dr, dc in PROPOSAL_OFFSETS:
-                r2, c2 = rows[idx] + dr, cols[idx] + dc
-                ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
-                src = (r2.clamp(0, H - 1) * W + c2.clamp(0, W - 1))
+                ok, src = _shifted(rows[idx], cols[idx], dr, dc, H, W)
                 ok &= seen[src]
                 if not bool(ok.any()):
                     continue
