@@ -228,7 +228,9 @@ def run_reconstruction_benchmark(out: str | None = None, scene: str = "default",
 #: The lines above the independent benchmark's table in docs/benchmarks.md: what it measures and how to regenerate it.
 INDEPENDENT_INTRO = (
     "Reconstruction of Mitsuba 3 renders (docs/independent-renders.md) with the model that rendered them: RMSE per "
-    "texel set (docs/image-formation.md, \"What to expect\"), albedo / f0 / roughness r / roughness α. Regenerate: "
+    "texel set (docs/image-formation.md, \"What to expect\"), albedo / f0 / roughness r / roughness α; in brackets the "
+    "χ² of the true maps through the same image formation (the floor the photos and the fit's pixel model leave). "
+    "Regenerate: "
     "`python scripts/make_independent_fixtures.py --out DIR --full --spp 64`, then `python scripts/benchmark.py "
     "independent --datasets tests/fixtures/mitsuba/* DIR/* --out docs/benchmarks.md`.\n\n")
 
@@ -249,7 +251,7 @@ def run_independent_benchmark(datasets, out: str | None = None, threads: int | N
 
     dev = str(resolve_device(device))
     rows = [f"Machine: {machine_description(dev, threads)}; fits on `{dev}`", "",
-            "| scene | fit | time | χ² / residual | worst view | well lit | well lit, ≥ 1 pixel "
+            "| scene | fit | time | χ² / residual (true maps) | worst view | well lit | well lit, ≥ 1 pixel "
             "| well lit, highlight | well lit, visible highlight |",
             "|---|---|---|---|---|---|---|---|---|"]
     for path in datasets:
@@ -269,10 +271,11 @@ def run_independent_benchmark(datasets, out: str | None = None, threads: int | N
                     return "no texel"
                 return " / ".join(f"{e:.4f}" for n, e in v.items() if n != "texels") if v else "–"
 
+            truth = f" ({r.errors['chi2_at_truth']:.3g})" if "chi2_at_truth" in r.errors else ""
             size = (f"{len(ds.views)} × {ds.views[0].camera.width}², "
                     f"{int(next(iter(ds.gt.maps.values())).shape[0])}² maps")
             rows.append(f"| {Path(path).name}, {size} | {'footprints' if fp else 'pixel centres'} | {dt:.1f} s | "
-                        f"{r.fit['chi2_per_residual']:.3g} | {min(v['psnr'] for v in r.views):.1f} dB | "
+                        f"{r.fit['chi2_per_residual']:.3g}{truth} | {min(v['psnr'] for v in r.views):.1f} dB | "
                         f"{cell('well_lit')} | {cell('well_lit_pixel_sized')} | {cell('well_lit_highlight')} | "
                         f"{cell('well_lit_visible_highlight')} |")
             print(rows[-1], flush=True)
