@@ -644,6 +644,37 @@ def test_an_affine_model_is_linearised_once():
     assert not op2.affine
 
 
+def test_texels_only_the_footprints_read_start_at_their_nearest_fitted_texels_values():
+    """A texel no pixel centre falls in keeps the parameters' defaults through the per-texel stages; when the
+    footprints read it, the footprint steps start it at the values of the nearest fitted texel — its own material's,
+    not a mixture of the materials around it. Texels neither stage sees stay as they were, the fitted ones bit for
+    bit."""
+    from capture.fit.fast import _fill_footprint_only
+
+    model = materials.get("ggx-lambert")
+    layout = Layout.of(model)
+    H = W = 8
+    gold = {"albedo": [0.0, 0.0, 0.0], "f0": [0.97, 0.82, 0.39], "roughness": [0.35]}
+    plastic = {"albedo": [0.2, 0.4, 0.6], "f0": [0.04, 0.04, 0.04], "roughness": [0.6]}
+    default = {"albedo": [0.5] * 3, "f0": [0.05] * 3, "roughness": [0.25]}
+
+    def packed(m):
+        return layout.pack({k: torch.tensor(v, dtype=torch.float64).expand(H * W, -1) for k, v in m.items()})
+
+    rows, cols = torch.arange(H * W) // W, torch.arange(H * W) % W
+    fitted, read = rows < 5, rows < 7                       # rows 5–6: read by the footprints only; row 7: by neither
+    theta = torch.where((cols < 3)[:, None], packed(gold), packed(plastic))
+    theta = torch.where(fitted[:, None], theta, packed(default))
+    before = theta.clone()
+    assert _fill_footprint_only(theta, fitted, read, H, W) == 2 * W
+    only = (rows == 5) | (rows == 6)
+    assert torch.equal(theta[only & (cols < 3)], packed(gold)[only & (cols < 3)])
+    assert torch.equal(theta[only & (cols >= 3)], packed(plastic)[only & (cols >= 3)])
+    assert torch.equal(theta[~only], before[~only])
+    # nothing fitted: nothing to take values from
+    assert _fill_footprint_only(theta, torch.zeros_like(fitted), read, H, W) == 0
+
+
 def test_footprint_fit_recovers_a_texture_finer_than_its_pixels():
     """Lambert torus, albedo texture with texels about as large as pixels, photos of 64 jittered rays per pixel:
     the footprint solve recovers the albedo of the well-lit texels the photos resolve far better than treating
