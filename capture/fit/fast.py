@@ -515,7 +515,8 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
         release_memory()                                # (what the pixel-centre stages freed, before the largest)
         footprints = pixel_operator(footprints, T, opts.jacobian, opts.memory_budget_bytes)  # once, for all stages
         # texels no pixel centre falls in were never fitted by the per-texel stages (on the 256² Mitsuba sphere
-        # 12 202 of them, mostly near the poles, still at the parameters' defaults) but the footprints read them
+        # 12 202 of them, mostly near the poles, the farthest still at the parameters' defaults) but the footprints
+        # read them
         info["footprint_filled"] = _fill_footprint_only(theta, obs.samples_per_texel().reshape(-1) > 0,
                                                         footprints.observed(), H, W)
         theta, finfo = _footprint_stage(fit, theta, footprints, share, sharing)
