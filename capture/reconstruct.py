@@ -1280,8 +1280,9 @@ def _report_truth_chi2(report: Report, ds: Dataset, gt_model, mdl, seen: _Observ
         return
     if fit > TRUTH_CHI2_RATIO * truth and fit > TRUTH_CHI2_FLOOR:
         same = gt_model.name == getattr(mdl, "base", mdl).name
-        cause = ("the solver stopped short of what the photos allow (texels stuck in a compromise, or too few "
-                 "steps): part of the map error is the optimiser's, not the photos'" if same else
+        cause = ("the solver stopped short of what the photos allow (texels stuck in a compromise, too few steps, or "
+                 "the neighbour prior and the material tie holding texels the photos determine): part of the map "
+                 "error is the fit's, not the photos'" if same else
                  f"the fitted model ({report.model_spec['written']}) explains less than the true one "
                  f"({gt_model.name}), or the solver stopped short")
         times = f"{fit / truth:.1f}× " if truth > 0 else "far "
