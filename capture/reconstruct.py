@@ -66,6 +66,7 @@ from .fit import (
     photo_noise_ratio,
     photo_sigma,
     pyramid_size,
+    scaled_sigma,
     solve_adam,
     solve_fast,
     upsample_maps,
@@ -379,10 +380,8 @@ def _footprint_misfit(model, fit: FitResult, fp, obs: Observations, noise=NOISE,
 def _pixel_chi2(pred: Tensor, fp, obs: Observations, noise=NOISE) -> float:
     """χ² per residual of the pixels of ``fp`` predicted as ``pred [R, 3]``: σ from the noise model at each pixel's
     value, scaled by the noise measured in image space (``obs``)."""
-    from .fit import noise_sigma
-
     y = fp.radiance.to(torch.float64)
-    sigma = noise_sigma(y, noise) * math.sqrt(max(1.0, photo_noise_ratio(obs, noise) or 1.0))
+    sigma = scaled_sigma(y, noise, photo_noise_ratio(obs, noise))
     return float((((pred.to(torch.float64) - y) / sigma) ** 2).mean())
 
 

@@ -47,12 +47,12 @@ from .adam import solve_adam
 from .fast import pyramid_size, solve_fast, upsample_maps
 from .joint import refine_joint
 from .layout import FitResult, Layout, SolverError
-from .noise import LOSSES, NOISE, noise_sigma, photo_noise_ratio, photo_sigma, robust_rho
+from .noise import LOSSES, NOISE, noise_sigma, photo_noise_ratio, photo_sigma, robust_rho, scaled_sigma
 from .observability import OBSERVABLE_STD, determined, posterior_std, pull_push, std_threshold
 from .options import FitOptions
 from .sharing import share_materials, unmatched_texels
 
 __all__ = ["FitOptions", "Layout", "FitResult", "SolverError", "LOSSES", "OBSERVABLE_STD", "NOISE", "solve_fast",
            "solve_adam", "refine_joint", "posterior_std", "std_threshold", "determined", "pull_push", "robust_rho",
-           "noise_sigma", "photo_noise_ratio", "photo_sigma", "share_materials", "unmatched_texels", "pyramid_size",
-           "upsample_maps"]
+           "noise_sigma", "photo_noise_ratio", "photo_sigma", "scaled_sigma", "share_materials", "unmatched_texels",
+           "pyramid_size", "upsample_maps"]

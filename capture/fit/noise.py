@@ -18,7 +18,7 @@ from .layout import ACC, SolverError
 
 __all__ = ["LOSSES", "NOISE", "NOISE_QUANTILE", "CHI2_1_Q10", "MISFIT_PRIOR_DOF", "check_loss", "robust_rho",
            "irls_weights", "default_delta", "check_noise", "noise_sigma", "photo_noise_ratio", "noise_ratio",
-           "moderated_misfit", "photo_sigma", "noise_floor"]
+           "moderated_misfit", "scaled_sigma", "photo_sigma", "noise_floor"]
 
 
 LOSSES = ("l2", "huber", "l1")
@@ -139,11 +139,16 @@ def moderated_misfit(chi2: Tensor, dof: Tensor, pooled: float | None) -> Tensor:
     return (chi2 + MISFIT_PRIOR_DOF * pooled) / (dof.clamp_min(0) + MISFIT_PRIOR_DOF)
 
 
+def scaled_sigma(y: Tensor, noise, ratio: float | None) -> Tensor:
+    """The noise std of values ``y [..., 3]``: σ of the noise model ``noise`` (:func:`noise_sigma`) times
+    √max(1, ratio), ``ratio`` the photos' noise measured in image space relative to it (:func:`photo_noise_ratio`;
+    None = 1) — the model's σ unless the photos are noisier."""
+    return noise_sigma(y, noise) * math.sqrt(max(1.0, ratio or 1.0))
+
+
 def photo_sigma(obs: Observations, noise, ratio: float | None) -> Tensor:
-    """The photos' noise std ``[S, 3]`` (float64) of each sample: σ of the noise model ``noise`` (:func:`noise_sigma`)
-    times √max(1, ratio), ``ratio`` the photos' noise measured in image space relative to it
-    (:func:`photo_noise_ratio`; None = 1) — the model's σ unless the photos are noisier."""
-    return noise_sigma(obs.radiance.to(ACC), noise) * math.sqrt(max(1.0, ratio or 1.0))
+    """The photos' noise std ``[S, 3]`` (float64) of each sample (:func:`scaled_sigma` of their radiance)."""
+    return scaled_sigma(obs.radiance.to(ACC), noise, ratio)
 
 
 def noise_floor(obs: Observations, noise, ratio: float | None, loss: str, delta: float) -> float:

@@ -20,7 +20,7 @@ from torch import Tensor
 from materials.model import Model
 
 from .layout import ACC, Layout, SolverError
-from .noise import noise_sigma, robust_rho
+from .noise import robust_rho, scaled_sigma
 from .operators import PixelOperator, pixel_operator
 
 __all__ = ["PROPOSAL_CHI2", "PROPOSAL_OFFSETS", "neighbour_proposals"]
@@ -97,7 +97,7 @@ def neighbour_proposals(model: Model, layout: Layout, theta: Tensor, op: PixelOp
     info = {"candidates": 0, "moved": 0, "seconds": 0.0}
     with torch.no_grad():
         y = op.y
-        sigma = noise_sigma(y, noise) * math.sqrt(max(1.0, noise_ratio or 1.0))
+        sigma = scaled_sigma(y, noise, noise_ratio)
         pred = op.predict(model, layout, layout.canonical(theta))
         num, den = _texel_means(op, _pixel_chi2(y, pred, sigma))
         seen = den > 0
