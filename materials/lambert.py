@@ -39,6 +39,16 @@ class Lambert(Model):
     def brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
         return lambert(g, p["albedo"])
 
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """``ρ (n·l)⁺/π`` on the front side; each channel's albedo acts on that channel alone, by ``(n·l)⁺/π`` (a
+        diagonal derivative)."""
+        if not self.shades_as(Lambert):
+            return None
+        albedo = p["albedo"]
+        w = torch.where(g.front, g.nl.clamp_min(0.0) * INV_PI, torch.zeros_like(g.nl))   # [..., 1]
+        value = albedo * w
+        return value, {"albedo": w.expand_as(value)}
+
     def environment(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         """ρ/π · E(n): Schüler's ``k_diffuse lerp(E_lower, E_upper, (1 + N·z)/2)`` for a
         :class:`HemisphereLight` (Schüler appendix), or the SH irradiance for an :class:`SHLight`."""

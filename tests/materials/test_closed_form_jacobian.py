@@ -1,0 +1,153 @@
+"""Closed-form derivatives of ``Model.cosine_brdf_jacobian`` against automatic differentiation in float64."""
+
+import pytest
+import torch
+
+import materials
+from materials import Angles, KnownParams, SumModel
+from materials.lambert import Lambert
+from materials.microfacet import Microfacet
+from materials.params import ALBEDO
+from materials.roughness import R_MIN
+
+
+def _angles(n: int, gen: torch.Generator) -> Angles:
+    # random directions: about a quarter of the triples face both light and viewer; the others test the zeros
+    def unit():
+        x = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+        return x / x.norm(dim=-1, keepdim=True)
+    return Angles.from_vectors(unit(), unit(), unit())
+
+
+def _params(model, n: int, gen: torch.Generator) -> dict[str, torch.Tensor]:
+    p = {}
+    for s in model.params:
+        x = torch.rand(n, s.channels, generator=gen, dtype=torch.float64) * (s.high - s.low) + s.low
+        if s.name == "roughness":   # the clamp's inside, its ends and below R_MIN (held there: derivative 0)
+            x[:8] = torch.tensor([0.0, R_MIN * 0.5, 1.0, 1.0, 0.999, 0.02, 0.5, 0.9], dtype=torch.float64)[:, None]
+        p[s.name] = x
+    return p
+
+
+def _autograd(model, g: Angles, p: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    leaves = {k: v.clone().requires_grad_(True) for k, v in p.items()}
+    value = model.cosine_brdf(g, leaves)
+    grads = {}
+    for name, x in leaves.items():
+        rows = [torch.autograd.grad(value[:, c].sum(), x, retain_graph=True, allow_unused=True)[0] for c in range(3)]
+        grads[name] = torch.stack([torch.zeros_like(x) if r is None else r for r in rows], 1)   # [n, 3, C]
+    return value.detach(), grads
+
+
+def _full(d: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    return torch.diag_embed(d) if d.dim() == value.dim() else d
+
+
+CLOSED = {
+    "ggx-lambert": lambda: materials.get("ggx-lambert"),
+    "lambert": lambda: materials.get("lambert"),
+    "microfacet": lambda: materials.get("microfacet"),
+    "ggx smith, F none (the Mitsuba sphere's)": lambda: SumModel(Lambert(), Microfacet(G="smith", F="none")),
+    "ggx smith, schlick": lambda: Microfacet(G="smith"),
+    "ggx smith-correlated, F none": lambda: Microfacet(F="none"),
+    "roughness known": lambda: KnownParams(materials.get("ggx-lambert"), {"roughness": 0.4}),
+    "albedo and f0 known": lambda: KnownParams(materials.get("ggx-lambert"), {"albedo": 0.5, "f0": [0.9, 0.6, 0.3]}),
+    "a shared part twice": lambda: SumModel(Microfacet(), Microfacet(G="smith", F="none")),
+}
+
+
+@pytest.mark.parametrize("name", list(CLOSED))
+def test_the_closed_forms_are_the_automatic_derivatives_in_float64(name):
+    model = CLOSED[name]()
+    gen = torch.Generator().manual_seed(7)
+    n = 3000
+    g, p = _angles(n, gen), _params(model, n, gen)
+    out = model.cosine_brdf_jacobian(g, p)
+    assert out is not None
+    value, grads = out
+    ref_value, ref_grads = _autograd(model, g, p)
+    torch.testing.assert_close(value, ref_value, rtol=1e-12, atol=1e-13)
+    assert set(grads) == set(ref_grads) == set(model.param_names)
+    for k, ref in ref_grads.items():
+        assert float(ref.abs().max()) > 0, k            # the comparison is not between zeros
+        torch.testing.assert_close(_full(grads[k], value), ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max()),
+                                   msg=k)
+    # the clamp holds roughness below R_MIN: no derivative there (rows 0 and 1), one at r = 1 (rows 2 and 3)
+    if "roughness" in grads:
+        r = _full(grads["roughness"], value)
+        assert bool((r[:2] == 0).all())
+
+
+def test_a_diagonal_derivative_acts_on_its_own_channel_only():
+    model = materials.get("ggx-lambert")
+    gen = torch.Generator().manual_seed(2)
+    g, p = _angles(500, gen), _params(model, 500, gen)
+    value, grads = model.cosine_brdf_jacobian(g, p)
+    assert grads["albedo"].shape == value.shape == grads["f0"].shape == (500, 3)
+    assert grads["roughness"].shape == (500, 3, 1)
+    _, ref = _autograd(model, g, p)
+    off = ~torch.eye(3, dtype=torch.bool)
+    assert bool((ref["albedo"][:, off] == 0).all()) and bool((ref["f0"][:, off] == 0).all())
+
+
+class _Tinted(Microfacet):
+    """A subclass that changes the BRDF: its parent's closed form no longer holds."""
+
+    def brdf(self, g, p):
+        return super().brdf(g, p) * 0.5
+
+
+@pytest.mark.parametrize("make", [
+    lambda: materials.get("cook-torrance"),
+    lambda: Microfacet(D="beckmann"),
+    lambda: Microfacet(G="kelemen"),
+    lambda: Microfacet(F="exact"),
+    lambda: _Tinted(),
+    lambda: SumModel(Lambert(), Microfacet(D="blinn-phong")),
+    lambda: KnownParams(materials.get("cook-torrance"), {"roughness": 0.3}),
+])
+def test_models_without_a_closed_form_return_none(make):
+    model = make()
+    gen = torch.Generator().manual_seed(3)
+    g, p = _angles(50, gen), _params(model, 50, gen)
+    assert model.cosine_brdf_jacobian(g, p) is None
+    assert model.cosine_brdf(g, p).shape == (50, 3)     # the model itself still shades
+
+
+def test_the_closed_form_checks_its_parameters():
+    model = materials.get("ggx-lambert")
+    gen = torch.Generator().manual_seed(4)
+    g, p = _angles(10, gen), _params(model, 10, gen)
+    p["roughness"] = p["roughness"].expand(10, 3)
+    with pytest.raises(ValueError, match="roughness"):
+        model.cosine_brdf_jacobian(g, p)
+    p["roughness"] = torch.full((10, 1), float("nan"), dtype=torch.float64)
+    with pytest.raises(ValueError, match="roughness"):
+        model.cosine_brdf_jacobian(g, p)
+
+
+class _GreyAlbedo(materials.Model):
+    """A lobe whose albedo channels mix (ρ̄/π on every channel): its derivative is a full 3 × 3 one."""
+
+    params = (ALBEDO,)
+
+    def brdf(self, g, p):
+        grey = p["albedo"].mean(-1, keepdim=True) / torch.pi
+        return torch.where(g.front, grey, torch.zeros_like(grey)).expand(*grey.shape[:-1], 3)
+
+    def cosine_brdf_jacobian(self, g, p):
+        w = torch.where(g.front, g.nl.clamp_min(0.0), torch.zeros_like(g.nl)) / torch.pi
+        value = (p["albedo"].mean(-1, keepdim=True) * w).expand(*w.shape[:-1], 3)
+        return value, {"albedo": (w / 3.0).unsqueeze(-1).expand(*w.shape[:-1], 3, 3)}
+
+
+def test_a_sum_of_a_diagonal_and_a_full_derivative_is_the_full_one():
+    model = SumModel(Lambert(), _GreyAlbedo())
+    gen = torch.Generator().manual_seed(6)
+    g, p = _angles(400, gen), _params(model, 400, gen)
+    value, grads = model.cosine_brdf_jacobian(g, p)
+    assert grads["albedo"].shape == (400, 3, 3)
+    ref_value, ref = _autograd(model, g, p)
+    torch.testing.assert_close(value, ref_value, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(grads["albedo"], ref["albedo"], rtol=1e-12, atol=1e-13)
+    assert bool((ref["albedo"][:, 0, 1] != 0).any())      # the channels do mix
