@@ -35,8 +35,8 @@ from .lights import DirectionalLight, LightError, PointLight, visibility
 from .mesh import Mesh
 from .texture import bilinear_weights, gather, texel_of
 
-__all__ = ["LightTerm", "EnvTerm", "Prepared", "prepare", "shade", "radiance_sum", "render", "check_maps",
-           "ShadingError"]
+__all__ = ["LightTerm", "EnvTerm", "Prepared", "prepare", "shade", "radiance_sum", "radiance_jacobian", "render",
+           "check_maps", "ShadingError"]
 
 SAMPLING = ("bilinear", "nearest")
 
@@ -276,6 +276,42 @@ def radiance_sum(model: Model, params: Mapping[str, Tensor], n_out: int, lights=
         rad = model.environment(light, n, v, p)
         out = out.index_add(0, index, rad.expand(len(index), 3))
     return out
+
+
+def radiance_jacobian(model: Model, params: Mapping[str, Tensor], n_out: int, lights=(), envs=(), *, dtype=None,
+                      device=None) -> tuple[Tensor, dict[str, Tensor]] | None:
+    """:func:`radiance_sum` and its derivatives with respect to ``params`` in closed form
+    (:meth:`materials.Model.cosine_brdf_jacobian`): ``(radiance [n_out, 3], {name: [n_out, 3, C] or, diagonal,
+    [n_out, 3]})``, each row's derivatives with respect to its own parameters (every pair writes the row it reads:
+    ``local == index``, as the fit's observations have it, else :class:`ShadingError`). None where
+    the model has no closed form or an environment light is present (callers then use automatic differentiation of
+    :func:`radiance_sum`). Same arguments as :func:`radiance_sum`.
+    """
+    if len(envs):
+        return None
+    ref = next(iter(params.values()), None)
+    dtype = dtype or ref.dtype
+    device = device or ref.device
+    out = torch.zeros(n_out, 3, dtype=dtype, device=device)
+    grads: dict[str, Tensor] = {}
+    for local, index, angles, irradiance in lights:
+        if local is not index and not torch.equal(local, index):
+            raise ShadingError("radiance_jacobian: every pair must write the row whose parameters it reads "
+                               "(local == index); sum the pairs of other rows with radiance_sum")
+        p = {k: torch.index_select(x, 0, local) for k, x in params.items()}
+        res = model.cosine_brdf_jacobian(angles, p)
+        if res is None:
+            return None
+        value, d = res
+        e = irradiance.to(dtype)
+        out.index_add_(0, index, e * value)
+        for k, dk in d.items():
+            dk = (e.unsqueeze(-1) if dk.dim() > value.dim() else e) * dk
+            acc = grads.get(k)          # (a model gives every group the same forms: diagonal or full)
+            if acc is None:
+                acc = grads[k] = torch.zeros(n_out, *dk.shape[1:], dtype=dtype, device=device)
+            acc.index_add_(0, index, dk)
+    return out, grads
 
 
 def render(mesh: Mesh, camera: Camera, lights, model: Model, maps: Mapping[str, Tensor], supersample: int = 1,
