@@ -35,7 +35,7 @@ from torch import Tensor
 from materials.geometry import Angles
 from materials.model import Model
 from renderer.device import per_view, release_memory
-from renderer.shading import radiance_sum
+from renderer.shading import radiance_jacobian, radiance_sum
 from renderer.texture import bilinear_weights, texel_of
 
 __all__ = ["Observations", "ObservationError", "DROP_REASONS", "TexelTaps", "ViewExtractor", "ViewSamples",
@@ -265,23 +265,35 @@ class Observations:
         """Predicted radiance ``[stop − start, 3]`` of the samples ``start … stop − 1`` from their canonical
         parameters ``name → [stop − start, C]``: :meth:`predict` on a block of samples, for sums whose autograd
         graph would be too large over all of them at once (:func:`capture.fit.texel.jacobian_blocks`)."""
+        return radiance_sum(model, params, stop - start, *self._terms(start, stop, "predict_rows"))
+
+    def jacobian_rows(self, model: Model, params: Mapping[str, Tensor], start: int,
+                      stop: int) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """:meth:`predict_rows` and its derivatives with respect to ``params`` in closed form,
+        ``(radiance [n, 3], {name: [n, 3, C]})``, or None where the model has none or the photos have an
+        environment light (:func:`renderer.shading.radiance_jacobian`)."""
+        return radiance_jacobian(model, params, stop - start, *self._terms(start, stop, "jacobian_rows"))
+
+    def _terms(self, start: int, stop: int, fn: str) -> tuple[list, list]:
+        """The light pairs and environment terms of the samples ``start … stop − 1``, in the form
+        :func:`renderer.shading.radiance_sum` reads (rows and outputs numbered from ``start``)."""
         if not 0 <= start <= stop <= self.n_samples:
-            raise ObservationError(f"predict_rows: need 0 ≤ start ≤ stop ≤ {self.n_samples}, got {start}, {stop}")
+            raise ObservationError(f"{fn}: need 0 ≤ start ≤ stop ≤ {self.n_samples}, got {start}, {stop}")
         if start == 0 and stop == self.n_samples:
             pairs = [(self.pair_sample, self.pair_sample, self.angles, self.irradiance)]
             envs = [(light, idx, idx, self.n[idx], self.v[idx]) for light, idx in self.env_terms]
-        else:
-            span = self._pair_span(start, stop)
-            # a slice (views, no copy) when the pairs are sorted by sample, else the block's pairs gathered
-            q = slice(*span) if span is not None else \
-                torch.nonzero((self.pair_sample >= start) & (self.pair_sample < stop), as_tuple=True)[0]
-            local = self.pair_sample[q] - start
-            pairs = [(local, local, self.angles[q], self.irradiance[q])]
-            envs = []
-            for light, idx in self.env_terms:
-                idx = idx[(idx >= start) & (idx < stop)]
-                envs.append((light, idx - start, idx - start, self.n[idx], self.v[idx]))
-        return radiance_sum(model, params, stop - start, pairs, envs)
+            return pairs, envs
+        span = self._pair_span(start, stop)
+        # a slice (views, no copy) when the pairs are sorted by sample, else the block's pairs gathered
+        q = slice(*span) if span is not None else \
+            torch.nonzero((self.pair_sample >= start) & (self.pair_sample < stop), as_tuple=True)[0]
+        local = self.pair_sample[q] - start
+        pairs = [(local, local, self.angles[q], self.irradiance[q])]
+        envs = []
+        for light, idx in self.env_terms:
+            idx = idx[(idx >= start) & (idx < stop)]
+            envs.append((light, idx - start, idx - start, self.n[idx], self.v[idx]))
+        return pairs, envs
 
     def _pair_span(self, start: int, stop: int) -> tuple[int, int] | None:
         """``(lo, hi)``: the pairs of the samples ``start … stop − 1`` as one range of pairs when the pairs are

@@ -12,8 +12,9 @@ Two paths over the same objective — a (robust) weighted sum over samples s and
      Fresnel, Nielsen's k_s) are solved in *closed form*, per texel, for a grid of values of the
      main nonlinear parameter (roughness); the best grid point per texel initialises
   2. Levenberg-Marquardt on all parameters, vectorised over all texels: residuals of all samples,
-     the per-sample Jacobian by reverse-mode AD (one evaluation, one backward pass per colour
-     channel: a sample's prediction depends only on its own parameters), per-texel
+     the per-sample Jacobian in the model's closed form where it has one, else by reverse-mode AD
+     (one evaluation, one backward pass per colour channel: a sample's prediction depends only on
+     its own parameters), per-texel
      normal equations ``JᵀWJ [T, P, P]`` and ``JᵀWr [T, P]`` accumulated with ``index_add``, a
      batched damped solve, and per-texel step acceptance with per-texel damping λ_t
      (:mod:`~capture.fit.texel`).

@@ -426,8 +426,8 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
 
     Objective: ``Σ_s weight_s Σ_c ρ(y_sc − L_sc)`` with nearest-texel sampling (each sample reads
     the texel containing its UV), so texels are independent and every texel has its own damping
-    λ_t and step acceptance. One iteration costs one evaluation with three backward passes (the
-    Jacobian, :func:`jacobian`) plus one trial evaluation.
+    λ_t and step acceptance. One iteration costs the Jacobian (:func:`jacobian`: the model's closed form, or one
+    evaluation with three backward passes) plus one trial evaluation.
 
     Args:
         model: the material model; obs: the observations.

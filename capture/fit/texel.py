@@ -8,7 +8,7 @@ With nearest-texel sampling each texel is an independent least-squares problem i
    main nonlinear parameter (roughness); the best grid point per texel initialises
    (:func:`closed_form_init`)
 2. Levenberg-Marquardt on all parameters, vectorised over all texels (:func:`per_texel_lm`): residuals of all
-   samples, the per-sample Jacobian by reverse-mode AD (:func:`jacobian`), per-texel normal equations
+   samples, the per-sample Jacobian (:func:`jacobian`: closed form or reverse-mode AD), per-texel normal equations
    ``JᵀWJ [T, P, P]`` and ``JᵀWr [T, P]`` accumulated with ``index_add``, a batched damped solve, and per-texel
    step acceptance with per-texel damping λ_t.
 """
@@ -100,12 +100,15 @@ SYSTEM_BLOCK = 1 << 16
 
 
 def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups, canonical: bool = False,
-                    block: int | None = None, start: int = 0) -> Iterator[tuple[int, int, Tensor, Tensor]]:
+                    block: int | None = None, start: int = 0,
+                    closed_form: bool = True) -> Iterator[tuple[int, int, Tensor, Tensor]]:
     """``(start, stop, pred [n, 3], J [n, 3, P])`` for blocks of ``block`` samples of :func:`jacobian`: the
     same values, with the autograd graph of one block alive at a time (default :data:`JACOBIAN_BLOCK` on the CPU,
     :func:`renderer.device.block_size` of it on a GPU). ``phi`` may hold only the samples ``start …
     start + len(phi) − 1`` of ``obs`` (a caller reading the samples' parameters a block at a time); the yielded
-    ``start, stop`` are indices of ``obs``'s samples."""
+    ``start, stop`` are indices of ``obs``'s samples. ``closed_form``: take the model's closed-form derivatives
+    where it has them (:meth:`capture.observations.Observations.jacobian_rows`; θ columns by the chain rule through
+    :meth:`Layout.dcanonical`) instead of automatic differentiation."""
     if block is None:
         block = block_size(JACOBIAN_BLOCK, phi.device)
     if block < 1:
@@ -119,6 +122,26 @@ def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor
     frozen = sorted(set(range(P)) - set(cols))
     for a in range(0, max(S, 1), block):
         b = min(a + block, S)
+        if cols and closed_form:
+            x = phi[a:b].detach().to(obs.dtype)
+            res = obs.jacobian_rows(model, unpack(x), start + a, start + b)
+            if res is not None:
+                pred, d = res
+                J = torch.zeros(b - a, 3, P, dtype=ACC, device=phi.device)
+                for spec, o in zip(layout.specs, layout.offsets, strict=True):
+                    dk = d.get(spec.name)
+                    if dk is None:
+                        continue
+                    if dk.dim() == 2:       # a diagonal derivative: channel c of the parameter acts on channel c
+                        J[:, :, o:o + spec.channels].diagonal(dim1=1, dim2=2).copy_(dk)
+                    else:
+                        J[:, :, o:o + spec.channels] = dk
+                if not canonical:
+                    J *= layout.dcanonical(x).to(ACC).unsqueeze(1)
+                if frozen:
+                    J[:, :, frozen] = 0.0
+                yield start + a, start + b, pred.to(ACC), J
+                continue
         with torch.enable_grad():
             x = phi[a:b].detach().to(obs.dtype).requires_grad_(bool(cols))
             pred = obs.predict_rows(model, unpack(x), start + a, start + b)
@@ -137,8 +160,11 @@ def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor
 
 
 def jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups,
-             canonical: bool = False, out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
-    """Prediction ``[S, 3]`` and Jacobian ``[S, 3, P]`` wrt per-sample θ ``phi [S, P]`` by reverse-mode AD.
+             canonical: bool = False, out: tuple[Tensor, Tensor] | None = None,
+             closed_form: bool = True) -> tuple[Tensor, Tensor]:
+    """Prediction ``[S, 3]`` and Jacobian ``[S, 3, P]`` wrt per-sample θ ``phi [S, P]``: in closed form where the
+    model has one (:meth:`materials.Model.cosine_brdf_jacobian`, unless ``closed_form`` is False), else by
+    reverse-mode AD.
 
     A sample's prediction depends only on its own parameters, so the gradient of ``Σ_s pred_sc`` with
     respect to ``phi`` holds row s of ``∂pred_c/∂phi`` for every sample: one evaluation and three backward
@@ -160,7 +186,7 @@ def jacobian(model: Model, layout: Layout, obs: Observations, phi: Tensor, group
         if tuple(pred.shape) != (S, 3) or tuple(J.shape) != (S, 3, P) or pred.dtype != ACC or J.dtype != ACC:
             raise SolverError(f"out must be float64 arrays of shapes ({S}, 3) and ({S}, 3, {P}), got "
                               f"{tuple(pred.shape)} {pred.dtype} and {tuple(J.shape)} {J.dtype}")
-    for a, b, pb, Jb in jacobian_blocks(model, layout, obs, phi, groups, canonical):
+    for a, b, pb, Jb in jacobian_blocks(model, layout, obs, phi, groups, canonical, closed_form=closed_form):
         pred[a:b], J[a:b] = pb, Jb
     return pred, J
 

@@ -368,6 +368,39 @@ def test_jacobian_matches_central_differences_in_float64(name, canonical):
                                        msg=f"column {col}")
 
 
+@pytest.mark.parametrize("name", ["ggx-lambert", "lambert", "microfacet"])
+@pytest.mark.parametrize("canonical", [False, True])
+def test_the_closed_form_jacobian_is_the_automatic_one(name, canonical):
+    # the models' closed-form derivatives (materials.Model.cosine_brdf_jacobian) through the observations' light
+    # pairs and, for θ, the chain rule, against reverse-mode AD of the same predictions; a frozen group stays zero,
+    # and blocks that split the samples give the same rows
+    from capture.fit.layout import param_groups
+    from capture.fit.texel import jacobian, jacobian_blocks
+
+    model = materials.get(name)
+    lay = Layout.of(model)
+    gen = torch.Generator().manual_seed(4)
+    maps = {s.name: torch.rand(4, 4, s.channels, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+            for s in model.params}
+    obs = synthetic_observations(model, maps, samples_per_texel=5)
+    assert obs.jacobian_rows(model, lay.split(torch.rand(obs.n_samples, lay.P, dtype=obs.dtype)), 0,
+                             obs.n_samples) is not None
+    canon = torch.cat([maps[s.name].reshape(16, -1) for s in lay.specs], -1)
+    phi = (canon if canonical else lay.pack({k: v.reshape(16, -1) for k, v in maps.items()}))[obs.texel]
+    groups = param_groups(lay)
+    kept = groups[1:] or groups         # the first parameter frozen where there is another
+    for g in (groups, kept):
+        pred, J = jacobian(model, lay, obs, phi, g, canonical=canonical)
+        ref_pred, ref_J = jacobian(model, lay, obs, phi, g, canonical=canonical, closed_form=False)
+        torch.testing.assert_close(pred, ref_pred, rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(J, ref_J, rtol=1e-10, atol=1e-12 * float(ref_J.abs().max()))
+        assert float(J.abs().max()) > 0
+    if kept is not groups:
+        assert bool((J[:, :, groups[0]] == 0).all())
+    rows = torch.cat([b[3] for b in jacobian_blocks(model, lay, obs, phi, kept, canonical, block=7)])
+    torch.testing.assert_close(rows, J, rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("name", ["ggx-lambert", "gotanda2012-layered", "nielsen-mixture"])
 def test_linear_solve_cost_is_the_data_term_at_the_solution(name):
     # The l2 cost of linear_solve comes from the normal equations (c0 − 2xᵀrhs + xᵀMx), not from a per-sample
