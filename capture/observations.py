@@ -270,8 +270,9 @@ class Observations:
     def jacobian_rows(self, model: Model, params: Mapping[str, Tensor], start: int,
                       stop: int) -> tuple[Tensor, dict[str, Tensor]] | None:
         """:meth:`predict_rows` and its derivatives with respect to ``params`` in closed form,
-        ``(radiance [n, 3], {name: [n, 3, C]})``, or None where the model has none or the photos have an
-        environment light (:func:`renderer.shading.radiance_jacobian`)."""
+        ``(radiance [n, 3], {name: [n, 3, C], or the diagonal [n, 3] of a parameter acting per channel})``, or None
+        where the model has none or the photos have an environment light
+        (:func:`renderer.shading.radiance_jacobian`)."""
         return radiance_jacobian(model, params, stop - start, *self._terms(start, stop, "jacobian_rows"))
 
     def _terms(self, start: int, stop: int, fn: str) -> tuple[list, list]:
