@@ -494,9 +494,8 @@ class PixelOperator:
         # of float64 at the linearisation's peak (0.38 GB on 32 × 512² photos)
         jdt = self.gather_op.dtype
         JcT = where = None                              # where: each kept pair's row in JcT
-        for a, b, pb, Jb in self._jacobian_blocks(model, layout, x, groups):
+        for a, b, pb, m, vals in self._pair_blocks(model, layout, x, groups):
             self._add_to_pixels(pred, pb, a, b)
-            m = (Jb != 0).any(0)
             if JcT is None or bool((m & ~mask).any()):
                 union = mask | m
                 grown = torch.zeros(int(union.sum()), S, dtype=jdt, device=dev)
@@ -504,23 +503,49 @@ class PixelOperator:
                 if JcT is not None:
                     grown[new_where[mask]] = JcT
                 JcT, mask, where = grown, union, new_where
-            cs, ps = torch.nonzero(m, as_tuple=True)
-            JcT[where[m], a:b] = Jb[:, cs, ps].t().to(jdt)
-            del Jb
+            JcT[where[m], a:b] = vals.to(jdt)
+            del vals
         if JcT is None:                                 # no samples
             JcT = torch.zeros(0, S, dtype=jdt, device=pred.device)
         return pred, JcT, mask
 
-    def _jacobian_blocks(self, model: Model, layout: Layout, x: Tensor,
-                         groups) -> Iterator[tuple[int, int, Tensor, Tensor]]:
-        """:func:`jacobian_blocks` of the samples at texel values ``x [T, P]`` (in ``gather_op``'s precision), each
-        block's parameters read on its own (:meth:`_read`: the rows of the whole product, bit for bit)."""
+    def _pair_blocks(self, model: Model, layout: Layout, x: Tensor,
+                     groups) -> Iterator[tuple[int, int, Tensor, Tensor, Tensor]]:
+        """``(a, b, pred [b − a, 3], mask [3, P], values [k, b − a])`` per block of samples at texel values
+        ``x [T, P]`` (in ``gather_op``'s precision): the block's predictions and, pair-major, its Jacobian's values
+        at the (channel, parameter) pairs of ``mask`` in their row-major order. In the model's closed form
+        (:meth:`capture.observations.Observations.jacobian_rows`) the pairs are those it can depend on — a diagonal
+        derivative's own channels, a full one's every channel — of the parameters ``groups`` keeps, taken as they
+        are; else the block's :func:`jacobian_blocks` values, and the pairs some sample of it depends on. Each
+        block's parameters are read on its own (:meth:`_read`: the rows of the whole product, bit for bit)."""
         so = self.fp.samples
+        P = x.shape[1]
         step = block_size(JACOBIAN_BLOCK, x.device)
+        kept = {c for cs in groups for c in cs}
         for a in range(0, max(so.n_samples, 1), step):
             b = min(a + step, so.n_samples)
-            yield from jacobian_blocks(model, layout, so, self._read(x, a, b), groups, canonical=True, block=step,
-                                       start=a)
+            phi = self._read(x, a, b)
+            res = so.jacobian_rows(model, layout.split(phi), a, b) if kept else None
+            if res is None:
+                for a_, b_, pb, Jb in jacobian_blocks(model, layout, so, phi, groups, canonical=True, block=step,
+                                                      start=a):
+                    m = (Jb != 0).any(0)
+                    cs, ps = torch.nonzero(m, as_tuple=True)
+                    yield a_, b_, pb, m, Jb[:, cs, ps].t()
+                continue
+            pb, d = res
+            mask = torch.zeros(3, P, dtype=torch.bool, device=x.device)
+            rows = {}                   # (channel, column) → the samples' values [b − a]
+            for spec, o in zip(layout.specs, layout.offsets, strict=True):
+                dk = d.get(spec.name)
+                for j in range(spec.channels):
+                    if dk is None or o + j not in kept:
+                        continue
+                    for c in ((j,) if dk.dim() == 2 else range(3)):
+                        rows[c, o + j] = dk[:, c] if dk.dim() == 2 else dk[:, c, j]
+                        mask[c, o + j] = True
+            yield a, b, pb.to(ACC), mask, torch.stack([rows[k] for k in sorted(rows)]) if rows else \
+                torch.zeros(0, b - a, dtype=x.dtype, device=x.device)
 
     def _form(self, k: int, device: torch.device) -> str:
         """The Jacobian's form (:data:`JACOBIAN_FORMS`), decided once, at the first linearisation, for ``k`` kept
