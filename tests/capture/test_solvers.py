@@ -401,6 +401,34 @@ def test_the_closed_form_jacobian_is_the_automatic_one(name, canonical):
     torch.testing.assert_close(rows, J, rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("name", ["ggx-lambert", "lambert", "microfacet"])
+@pytest.mark.parametrize("sep_rgb", [True, False])
+@pytest.mark.parametrize("per_channel", [True, False])
+def test_unit_responses_from_the_closed_form_are_the_evaluated_ones(name, sep_rgb, per_channel, monkeypatch):
+    # the linear parameters' unit responses and the prediction at their zero taken from the closed form's
+    # derivatives, against the differences of evaluations (the path of models without one), float64
+    from capture.fit.texel import _unit_responses
+    from capture.observations import Observations
+
+    model = materials.get(name)
+    lay = Layout.of(model)
+    gen = torch.Generator().manual_seed(8)
+    maps = {s.name: torch.rand(4, 4, s.channels, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+            for s in model.params}
+    obs = synthetic_observations(model, maps, samples_per_texel=5)
+    theta = lay.pack({k: v.reshape(16, -1) for k, v in maps.items()})
+    lin = [s for s in lay.specs if s.linear]
+    sep = {s.name: sep_rgb and s.channels == 3 for s in lin}
+    b, cols = _unit_responses(model, lay, obs, theta, lin, sep, per_channel)
+    monkeypatch.setattr(Observations, "jacobian_rows", lambda self, *a: None)
+    ref_b, ref_cols = _unit_responses(model, lay, obs, theta, lin, sep, per_channel)
+    torch.testing.assert_close(b, ref_b, rtol=1e-12, atol=1e-14)
+    assert len(cols) == len(ref_cols) > 0
+    for c, r in zip(cols, ref_cols, strict=True):
+        assert float(r.abs().max()) > 0
+        torch.testing.assert_close(c, r, rtol=1e-10, atol=1e-13 * float(r.abs().max()))
+
+
 @pytest.mark.parametrize("name", ["ggx-lambert", "gotanda2012-layered", "nielsen-mixture"])
 def test_linear_solve_cost_is_the_data_term_at_the_solution(name):
     # The l2 cost of linear_solve comes from the normal equations (c0 − 2xᵀrhs + xᵀMx), not from a per-sample
