@@ -279,20 +279,16 @@ def linear_solve(model: Model, layout: Layout, obs: Observations, theta: Tensor,
     return cand, cost
 
 
-def _closed_form_responses(closed: tuple[Tensor, dict[str, Tensor]], lin: list[ParamSpec], sep: dict[str, bool],
-                           per_channel: bool) -> tuple[Tensor, list[Tensor]]:
-    """:func:`_unit_responses` from the model's closed form at the linear parameters' zero (value and derivatives,
-    :meth:`capture.observations.Observations.jacobian_rows`): a parameter the prediction is affine in has its unit
-    response as its derivative, so one evaluation gives every column."""
-    b, d = closed
+def _response_columns(lin: list[ParamSpec], sep: dict[str, bool], per_channel: bool,
+                      whole: Callable[[ParamSpec], Tensor],
+                      single: Callable[[ParamSpec, int], Tensor]) -> list[Tensor]:
+    """:func:`_unit_responses`' columns from the ``[S, 3]`` responses to a unit value of every channel of a
+    parameter (``whole``) or of its channel c alone (``single``): one column per parameter that is scalar or, per
+    channel, separable; a separable RGB one otherwise split into its channels' parts; the others one per channel."""
     cols = []
     for s in lin:
-        dk = d.get(s.name)
-        if dk is None:                                    # a parameter the model does not read: no response
-            dk = torch.zeros(b.shape[0], 3, s.channels, dtype=b.dtype, device=b.device)
-        diagonal = dk.dim() == 2
         if sep[s.name] or s.channels == 1:
-            a = (dk if diagonal else dk.sum(-1)).to(ACC)  # the response to a unit value of every channel
+            a = whole(s)
             if s.channels == 1 or per_channel:
                 cols.append(a)
             else:
@@ -301,13 +297,24 @@ def _closed_form_responses(closed: tuple[Tensor, dict[str, Tensor]], lin: list[P
                     e[:, c] = a[:, c]
                     cols.append(e)
         else:
-            for c in range(s.channels):
-                if diagonal:
-                    e = torch.zeros(b.shape[0], 3, dtype=ACC, device=b.device)
-                    e[:, c] = dk[:, c]
-                else:
-                    e = dk[:, :, c].to(ACC)
-                cols.append(e)
+            cols.extend(single(s, c) for c in range(s.channels))
+    return cols
+
+
+def _closed_form_responses(closed: tuple[Tensor, dict[str, Tensor]], lin: list[ParamSpec], sep: dict[str, bool],
+                           per_channel: bool) -> tuple[Tensor, list[Tensor]]:
+    """:func:`_unit_responses` from the model's closed form at the linear parameters' zero (value and derivatives,
+    :meth:`capture.observations.Observations.jacobian_rows`): a parameter the prediction is affine in has its unit
+    response as its derivative, so one evaluation gives every column."""
+    b, d = closed
+
+    def full(s: ParamSpec) -> Tensor:                     # [S, 3, C]; zero for a parameter the model does not read
+        dk = d.get(s.name)
+        if dk is None:
+            return torch.zeros(b.shape[0], 3, s.channels, dtype=ACC, device=b.device)
+        return (torch.diag_embed(dk) if dk.dim() == 2 else dk).to(ACC)
+
+    cols = _response_columns(lin, sep, per_channel, lambda s: full(s).sum(-1), lambda s, c: full(s)[:, :, c])
     return b.to(ACC), cols
 
 
@@ -333,27 +340,19 @@ def _unit_responses(model: Model, layout: Layout, obs: Observations, theta: Tens
         return sum(obs.predict(part, q).to(ACC) - at_zero[j] for j, part in enumerate(parts)
                    if name in part.param_names)
 
-    cols = []                                             # per column: [S, 3] response to a unit value
-    for s in lin:
-        if sep[s.name] or s.channels == 1:
-            q = dict(p)
-            q[s.name] = torch.ones_like(p[s.name])
-            a = response(q, s.name)
-            if s.channels == 1 or per_channel:
-                cols.append(a)
-            else:
-                for c in range(3):
-                    e = torch.zeros_like(a)
-                    e[:, c] = a[:, c]
-                    cols.append(e)
-        else:
-            for c in range(s.channels):
-                q = dict(p)
-                e = torch.zeros_like(p[s.name])
-                e[:, c] = 1.0
-                q[s.name] = e
-                cols.append(response(q, s.name))
-    return b, cols
+    def whole(s: ParamSpec) -> Tensor:
+        q = dict(p)
+        q[s.name] = torch.ones_like(p[s.name])
+        return response(q, s.name)
+
+    def single(s: ParamSpec, c: int) -> Tensor:
+        q = dict(p)
+        e = torch.zeros_like(p[s.name])
+        e[:, c] = 1.0
+        q[s.name] = e
+        return response(q, s.name)
+
+    return b, _response_columns(lin, sep, per_channel, whole, single)
 
 
 class _LinearSystem(NamedTuple):

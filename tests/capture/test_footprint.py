@@ -113,6 +113,29 @@ def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx, form):
         assert torch.allclose(op.apply_t(C, op.apply(C, e))[t], B[t, :, p], rtol=1e-10, atol=1e-14)
 
 
+def _third_of_the_pixels(fp, layout, T: int, seed: int):
+    """Every third pixel of ``fp`` with float64 samples, random canonical maps in [0.1, 0.9] and the generator."""
+    sel = fp.select(torch.arange(fp.n_pixels) % 3 == 0)
+    sel.samples = sel.samples.to(dtype=torch.float64)
+    gen = torch.Generator().manual_seed(seed)
+    return sel, torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1, gen
+
+
+def _linearisation(sel, T: int, model, layout, canon, gen):
+    """A function that builds the pixel operator, linearises it at ``canon`` and returns its kept pairs,
+    predictions (there and at 0.9 ×), products with random vectors, gradient and per-texel blocks."""
+    u = torch.randn(T * T, layout.P, generator=gen, dtype=torch.float64)
+    v = torch.randn(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
+    w = torch.rand(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
+
+    def run():
+        op = PixelOperator(sel, T * T)
+        pred, C = op.linearise(model, layout, canon, param_groups(layout))
+        g, B = op.normal(C, w, w * v)
+        return C.cs, C.ps, pred, op.predict(model, layout, canon * 0.9), op.apply(C, u), op.apply_t(C, v), g, B
+    return run
+
+
 @pytest.mark.parametrize("first_block", ["all pairs", "without roughness"])
 def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatch, first_block):
     """The operator evaluates the samples' Jacobian and radiance in blocks of samples and places the values in its
@@ -125,10 +148,7 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
 
     sc, fp, _, T = ggx
     model, layout = sc.model, Layout.of(sc.model)
-    sel = fp.select(torch.arange(fp.n_pixels) % 3 == 0)
-    sel.samples = sel.samples.to(dtype=torch.float64)
-    gen = torch.Generator().manual_seed(3)
-    canon = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    sel, canon, gen = _third_of_the_pixels(fp, layout, T, 3)
     if first_block == "without roughness":        # F = none: the lobe is f0 · D G, so no roughness slope at f0 = 0
         from capture.dataset import model_from_spec
 
@@ -143,23 +163,14 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
         assert any(bool((m & ~masks[0]).any()) for m in masks[1:])      # a later block brings pairs
         # the pairs of autograd's values (a closed form keeps every pair its model can depend on from the start)
         monkeypatch.setattr(Observations, "jacobian_rows", lambda self, *a: None)
-    u = torch.randn(T * T, layout.P, generator=gen, dtype=torch.float64)
-    v = torch.randn(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
-    w = torch.rand(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
-
-    def run():
-        op = PixelOperator(sel, T * T)
-        pred, C = op.linearise(model, layout, canon, param_groups(layout))
-        g, B = op.normal(C, w, w * v)
-        return pred, op.predict(model, layout, canon * 0.9), op.apply(C, u), op.apply_t(C, v), g, B
-
+    run = _linearisation(sel, T, model, layout, canon, gen)
     whole = run()
     assert sel.n_samples > 1000 and PixelOperator(sel, T * T).E > 1000
     monkeypatch.setattr(ops, "JACOBIAN_BLOCK", 97)
     monkeypatch.setattr(ops, "PLACE_BLOCK", 61)
     monkeypatch.setattr(ops, "NORMAL_BLOCK", 53)
     for a, b in zip(whole, run(), strict=True):
-        assert torch.allclose(a, b, rtol=1e-12, atol=1e-15 * float(a.abs().max()))
+        assert torch.allclose(a.double(), b.double(), rtol=1e-12, atol=1e-15 * float(a.abs().max()))
 
 
 @pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert"])
@@ -168,20 +179,8 @@ def test_the_closed_form_linearisation_is_autograds(ggx, monkeypatch, model_name
     differentiation (float64 samples): the same kept pairs, predictions, products and per-texel blocks."""
     sc, fp, _, T = ggx if model_name == "ggx-lambert" else _scene("lambert")
     model, layout = sc.model, Layout.of(sc.model)
-    sel = fp.select(torch.arange(fp.n_pixels) % 3 == 0)
-    sel.samples = sel.samples.to(dtype=torch.float64)
-    gen = torch.Generator().manual_seed(5)
-    canon = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1
-    u = torch.randn(T * T, layout.P, generator=gen, dtype=torch.float64)
-    v = torch.randn(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
-    w = torch.rand(sel.n_pixels, 3, generator=gen, dtype=torch.float64)
-
-    def run():
-        op = PixelOperator(sel, T * T)
-        pred, C = op.linearise(model, layout, canon, param_groups(layout))
-        g, B = op.normal(C, w, w * v)
-        return C.cs, C.ps, pred, op.apply(C, u), op.apply_t(C, v), g, B
-
+    sel, canon, gen = _third_of_the_pixels(fp, layout, T, 5)
+    run = _linearisation(sel, T, model, layout, canon, gen)
     closed = run()
     monkeypatch.setattr(Observations, "jacobian_rows", lambda self, *a: None)
     for a, b in zip(closed, run(), strict=True):

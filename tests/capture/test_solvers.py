@@ -368,6 +368,16 @@ def test_jacobian_matches_central_differences_in_float64(name, canonical):
                                        msg=f"column {col}")
 
 
+def _closed_form_scene(name: str, seed: int):
+    """A model with closed-form derivatives, its layout, random 4 × 4 maps in [0.1, 0.9] and float64 observations
+    of them (5 samples a texel)."""
+    model = materials.get(name)
+    gen = torch.Generator().manual_seed(seed)
+    maps = {s.name: torch.rand(4, 4, s.channels, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+            for s in model.params}
+    return model, Layout.of(model), maps, synthetic_observations(model, maps, samples_per_texel=5)
+
+
 @pytest.mark.parametrize("name", ["ggx-lambert", "lambert", "microfacet"])
 @pytest.mark.parametrize("canonical", [False, True])
 def test_the_closed_form_jacobian_is_the_automatic_one(name, canonical):
@@ -377,12 +387,7 @@ def test_the_closed_form_jacobian_is_the_automatic_one(name, canonical):
     from capture.fit.layout import param_groups
     from capture.fit.texel import jacobian, jacobian_blocks
 
-    model = materials.get(name)
-    lay = Layout.of(model)
-    gen = torch.Generator().manual_seed(4)
-    maps = {s.name: torch.rand(4, 4, s.channels, generator=gen, dtype=torch.float64) * 0.8 + 0.1
-            for s in model.params}
-    obs = synthetic_observations(model, maps, samples_per_texel=5)
+    model, lay, maps, obs = _closed_form_scene(name, 4)
     assert obs.jacobian_rows(model, lay.split(torch.rand(obs.n_samples, lay.P, dtype=obs.dtype)), 0,
                              obs.n_samples) is not None
     canon = torch.cat([maps[s.name].reshape(16, -1) for s in lay.specs], -1)
@@ -410,12 +415,7 @@ def test_unit_responses_from_the_closed_form_are_the_evaluated_ones(name, sep_rg
     from capture.fit.texel import _unit_responses
     from capture.observations import Observations
 
-    model = materials.get(name)
-    lay = Layout.of(model)
-    gen = torch.Generator().manual_seed(8)
-    maps = {s.name: torch.rand(4, 4, s.channels, generator=gen, dtype=torch.float64) * 0.8 + 0.1
-            for s in model.params}
-    obs = synthetic_observations(model, maps, samples_per_texel=5)
+    model, lay, maps, obs = _closed_form_scene(name, 8)
     theta = lay.pack({k: v.reshape(16, -1) for k, v in maps.items()})
     lin = [s for s in lay.specs if s.linear]
     sep = {s.name: sep_rgb and s.channels == 3 for s in lin}
