@@ -369,9 +369,8 @@ def _auto_verdict(tried: list[dict], params, err: float, chi2: float, best_err: 
 
 
 def _footprint_misfit(model, fit: FitResult, fp, obs: Observations, noise=NOISE, pred: Tensor | None = None) -> float:
-    """:func:`_misfit` of the photos' pixels as the footprint operator predicts them (:mod:`capture.footprint`),
-    σ from the noise model at each pixel's value, scaled by the noise measured in image space (``obs``). ``pred``:
-    that prediction when it is already made (:func:`_fitted_prediction`)."""
+    """:func:`_misfit` of the photos' pixels as the footprint operator predicts them (:mod:`capture.footprint`;
+    :func:`_pixel_chi2`). ``pred``: that prediction when it is already made (:func:`_fitted_prediction`)."""
     if pred is None:
         pred = _fitted_prediction(model, fit, obs, fp, "bilinear")
     return _pixel_chi2(pred, fp, obs, noise)

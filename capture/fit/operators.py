@@ -14,7 +14,7 @@ from materials.model import Model
 from renderer.device import HandedOutArrays, block_size, kept_array, memory_headroom
 
 from .layout import ACC, Layout, SolverError
-from .texel import JACOBIAN_BLOCK, jacobian_blocks
+from .texel import JACOBIAN_BLOCK, derivative_pairs, jacobian_blocks
 
 __all__ = ["CsrPattern", "csr_matrix", "csr_rows", "sampling_operator", "sampled_sum",
            "sampled_blocks", "PixelJacobian", "SampleJacobian",
@@ -535,16 +535,11 @@ class PixelOperator:
                 continue
             pb, d = res
             mask = torch.zeros(3, P, dtype=torch.bool, device=x.device)
-            rows = {}                   # (channel, column) → the samples' values [b − a]
-            for spec, o in zip(layout.specs, layout.offsets, strict=True):
-                dk = d.get(spec.name)
-                for j in range(spec.channels):
-                    if dk is None or o + j not in kept:
-                        continue
-                    for c in ((j,) if dk.dim() == 2 else range(3)):
-                        rows[c, o + j] = dk[:, c] if dk.dim() == 2 else dk[:, c, j]
-                        mask[c, o + j] = True
-            yield a, b, pb.to(ACC), mask, torch.stack([rows[k] for k in sorted(rows)]) if rows else \
+            values = []
+            for c, col, v in derivative_pairs(layout, d, kept):
+                mask[c, col] = True
+                values.append(v)
+            yield a, b, pb.to(ACC), mask, torch.stack(values) if values else \
                 torch.zeros(0, b - a, dtype=x.dtype, device=x.device)
 
     def _form(self, k: int, device: torch.device) -> str:

@@ -35,7 +35,7 @@ from .layout import ACC, MAX_STEP, Layout, SolverError, bounded, from_canonical
 from .noise import check_loss, irls_weights, robust_rho
 
 __all__ = ["BILINEAR_LM_TOL", "BILINEAR_LM_MIN", "check_inputs", "init_theta", "separable", "JACOBIAN_BLOCK",
-           "jacobian_blocks", "jacobian",
+           "derivative_pairs", "jacobian_blocks", "jacobian",
            "sample_cost", "texel_cost", "weighted_cost", "data_cost", "grid_values", "linear_solve",
            "closed_form_init", "per_texel_lm"]
 
@@ -99,6 +99,24 @@ JACOBIAN_BLOCK = 1 << 18
 SYSTEM_BLOCK = 1 << 16
 
 
+def derivative_pairs(layout: Layout, d: Mapping[str, Tensor], kept: set[int]) -> list[tuple[int, int, Tensor]]:
+    """``(channel, column, values [n])`` of the closed-form derivatives ``d`` (name → ``[n, 3, C]``, or the diagonal
+    ``[n, 3]`` of a parameter acting per channel: :meth:`capture.observations.Observations.jacobian_rows`) at every
+    (output channel, θ column) pair they can be non-zero at, the columns in ``kept`` only, in row-major order of the
+    pairs."""
+    pairs = []
+    for spec, o in zip(layout.specs, layout.offsets, strict=True):
+        dk = d.get(spec.name)
+        for j in range(spec.channels):
+            if dk is None or o + j not in kept:
+                continue
+            if dk.dim() == 2:       # a diagonal derivative: channel j of the parameter acts on output channel j
+                pairs.append((j, o + j, dk[:, j]))
+            else:
+                pairs.extend((c, o + j, dk[:, c, j]) for c in range(3))
+    return sorted(pairs, key=lambda t: (t[0], t[1]))
+
+
 def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor, groups, canonical: bool = False,
                     block: int | None = None, start: int = 0,
                     closed_form: bool = True) -> Iterator[tuple[int, int, Tensor, Tensor]]:
@@ -120,6 +138,7 @@ def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor
     unpack = layout.split if canonical else layout.unpack
     cols = sorted({c for cs in groups for c in cs})
     frozen = sorted(set(range(P)) - set(cols))
+    kept = set(cols)
     for a in range(0, max(S, 1), block):
         b = min(a + block, S)
         if cols and closed_form:
@@ -127,19 +146,11 @@ def jacobian_blocks(model: Model, layout: Layout, obs: Observations, phi: Tensor
             res = obs.jacobian_rows(model, unpack(x), start + a, start + b)
             if res is not None:
                 pred, d = res
-                J = torch.zeros(b - a, 3, P, dtype=ACC, device=phi.device)
-                for spec, o in zip(layout.specs, layout.offsets, strict=True):
-                    dk = d.get(spec.name)
-                    if dk is None:
-                        continue
-                    if dk.dim() == 2:       # a diagonal derivative: channel c of the parameter acts on channel c
-                        J[:, :, o:o + spec.channels].diagonal(dim1=1, dim2=2).copy_(dk)
-                    else:
-                        J[:, :, o:o + spec.channels] = dk
+                J = torch.zeros(b - a, 3, P, dtype=ACC, device=phi.device)       # (frozen columns stay 0)
+                for c, col, values in derivative_pairs(layout, d, kept):
+                    J[:, c, col] = values
                 if not canonical:
                     J *= layout.dcanonical(x).to(ACC).unsqueeze(1)
-                if frozen:
-                    J[:, :, frozen] = 0.0
                 yield start + a, start + b, pred.to(ACC), J
                 continue
         with torch.enable_grad():
