@@ -43,9 +43,9 @@ import torch
 from torch import Tensor
 
 from . import roughness as rough
-from .fresnel import FRESNEL, fresnel_from_f0
+from .fresnel import FRESNEL, fresnel_and_derivative, fresnel_from_f0
 from .geometry import Angles, guarded_pow
-from .lambert import lambert
+from .lambert import INV_PI, lambert
 from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
 
@@ -65,7 +65,7 @@ BECKMANN_A_MAX = 6.0
 __all__ = [
     "BECKMANN_LAMBDAS", "COS_EPS", "DISTRIBUTIONS", "GEOMETRIES", "ndf", "ndf_ggx", "ndf_beckmann", "ndf_blinn_phong",
     "smith_lambda_cos", "smith_g1", "smith_g1_ggx", "smith_g2_correlated_ggx", "visibility_term",
-    "geometry_term", "microfacet_specular", "Microfacet", "CookTorrance",
+    "geometry_term", "microfacet_specular", "specular_jacobian", "Microfacet", "CookTorrance",
 ]
 
 
@@ -385,6 +385,137 @@ def microfacet_specular(g: Angles, f0: Tensor, alpha, D: str = "ggx", G: str = "
     return torch.where(g.front, f, torch.zeros_like(f))
 
 
+# -- closed-form derivatives in α² ----------------------------------------------------------------------
+def _ndf_derivative(name: str, nh: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`ndf` and its derivative in ``A = α²`` at an α inside [ALPHA_MIN, 1], each ``[..., 1]``.
+
+    GGX, ``d = 1 + c²(A − 1)``: ``D = A/(π d²)``, ``∂D/∂A = (d − 2Ac²)/(π d³)``. Beckmann, ``t = tan²θ_h``:
+    ``D = exp(−t/A)/(π A c⁴)``, ``∂D/∂A = D (t − A)/A²``. Blinn-Phong, ``s = 2/A − 2`` (0 where its clamp to
+    [0, S_MAX] holds): ``D = (s + 2) c^s/(2π)``, ``∂D/∂s = D (1/(s + 2) + ln c)``, ``∂s/∂A = −2/A²``."""
+    A = alpha * alpha
+    if name == "ggx":
+        c = nh.clamp(0.0, 1.0)
+        d = (1.0 - c) * (1.0 + c) + c * c * A
+        inv = 1.0 / d
+        lit = nh > 0
+        zero = torch.zeros_like(d)
+        return (torch.where(lit, A * inv * inv / math.pi, zero),
+                torch.where(lit, (d - 2.0 * A * c * c) * inv * inv * inv / math.pi, zero))
+    if name == "beckmann":
+        ok = nh > BECKMANN_NH_MIN
+        c = torch.where(ok, nh.clamp(max=1.0), torch.ones_like(nh))
+        c2 = c * c
+        tan2 = (1.0 - c) * (1.0 + c) / c2
+        d = torch.exp(-tan2 / A) / (math.pi * A * c2 * c2)
+        zero = torch.zeros_like(d)
+        return torch.where(ok, d, zero), torch.where(ok, d * (tan2 - A) / (A * A), zero)
+    s_raw = 2.0 / A - 2.0
+    s = s_raw.clamp(0.0, rough.S_MAX)
+    ok = nh.clamp(max=1.0) > 1e-12                      # guarded_pow's guard
+    c = torch.where(ok, nh.clamp(max=1.0), torch.ones_like(nh))
+    d = torch.where(ok, (s + 2.0) / (2.0 * math.pi) * c.pow(s), torch.zeros_like(c))
+    ds = torch.where((s_raw >= 0.0) & (s_raw <= rough.S_MAX), -2.0 / (A * A), torch.zeros_like(A))
+    dd = torch.where(ok, d * (1.0 / (s + 2.0) + torch.log(c)), torch.zeros_like(d)) * ds
+    lit = nh > 0
+    return torch.where(lit, d, torch.zeros_like(d)), torch.where(lit, dd, torch.zeros_like(dd))
+
+
+def _lambda_cos_derivative(c: Tensor, alpha: Tensor, distribution: str,
+                           beckmann_lambda: str) -> tuple[Tensor, Tensor]:
+    """:func:`smith_lambda_cos` of the Beckmann Λ (D = beckmann, blinn-phong) at a cosine ``c`` in [0, 1] and its
+    derivative in ``A = α²``, each ``[..., 1]``. With ``a = c/(α sinθ)``: rational
+    ``cos·Λ = α sinθ P(a)/Q(a)``, ``∂/∂α = sinθ (P/Q − a (P′Q − PQ′)/Q²)`` (``∂a/∂α = −a/α``); exact,
+    ``∂/∂α = sinθ exp(−a²)/(2√π)`` (the erfc term's and the exponential's parts cancel); ``∂α/∂A = 1/(2α)``;
+    0 where the form's clamp at 0 holds."""
+    sin2 = (1.0 - c) * (1.0 + c)
+    limit2 = BECKMANN_A_MAX**2 if beckmann_lambda == "exact" else 2.56     # (as smith_lambda_cos writes them)
+    ok = c * c < limit2 * alpha.square() * sin2
+    sin = torch.sqrt(torch.where(ok, sin2, torch.ones_like(sin2)))
+    a = torch.where(ok, c / (alpha * sin), torch.zeros_like(c))
+    if beckmann_lambda == "exact":
+        e = torch.exp(-a * a)
+        lam = 0.5 * (alpha * sin * e / math.sqrt(math.pi) - c * torch.special.erfc(a))
+        dlam = 0.5 * sin * e / math.sqrt(math.pi)
+    else:
+        P, Q = 1.0 - 1.259 * a + 0.396 * a * a, 3.535 + 2.181 * a
+        lam = alpha * sin * P / Q
+        dlam = sin * (P / Q - a * ((-1.259 + 0.792 * a) * Q - P * 2.181) / (Q * Q))
+    keep = ok & (lam >= 0.0)
+    zero = torch.zeros_like(lam)
+    return torch.where(ok, lam.clamp_min(0.0), zero), torch.where(keep, dlam / (2.0 * alpha), zero)
+
+
+def _visibility_derivative(name: str, g: Angles, alpha: Tensor, distribution: str,
+                           beckmann_lambda: str) -> tuple[Tensor, Tensor]:
+    """:func:`visibility_term` and its derivative in ``A = α²`` (0 for the terms without α), each ``[..., 1]``, on the
+    front side (elsewhere finite, not 0: the caller's ``(n·l)⁺`` factor zeroes them).
+    Separable Smith ``V = 1/(4 (n·l + λ_l)(n·v + λ_v))``, ``λ = cos·Λ``: ``∂V/∂A = −V (λ_l′/(n·l + λ_l) +
+    λ_v′/(n·v + λ_v))``; height-correlated ``V = 1/(4 (n·l n·v + n·v λ_l + n·l λ_v))``:
+    ``∂V/∂A = −4V² (n·v λ_l′ + n·l λ_v′)``. GGX's ``λ = (R − cos)/2`` is written through ``R`` as
+    :func:`visibility_term` writes it."""
+    nl = g.nl.clamp(COS_EPS, 1.0)
+    nv = g.nv.clamp(COS_EPS, 1.0)
+    if name in ("smith", "smith-correlated") and distribution == "ggx":
+        # GGX's forms of visibility_term, R = √(A + (1 − A) cos²) = cos + 2 cos·Λ, ∂R/∂A = (1 − cos²)/(2R)
+        a2 = alpha.square()
+        root_l, root_v = _ggx_root(nl, a2), _ggx_root(nv, a2)
+        droot_l, droot_v = 0.5 * (1.0 - nl * nl) / root_l, 0.5 * (1.0 - nv * nv) / root_v
+        if name == "smith":
+            sum_l, sum_v = nl + root_l, nv + root_v
+            vis = 1.0 / (sum_l * sum_v)
+            dvis = -vis * (droot_l / sum_l + droot_v / sum_v)
+        else:
+            vis = 0.5 / (nv * root_l + nl * root_v)
+            dvis = -2.0 * vis * vis * (nv * droot_l + nl * droot_v)
+    elif name in ("smith", "smith-correlated"):
+        lam_l, dlam_l = _lambda_cos_derivative(nl, alpha, distribution, beckmann_lambda)
+        lam_v, dlam_v = _lambda_cos_derivative(nv, alpha, distribution, beckmann_lambda)
+        if name == "smith":
+            sum_l, sum_v = nl + lam_l, nv + lam_v
+            vis = 0.25 / (sum_l * sum_v)
+            dvis = -vis * (dlam_l / sum_l + dlam_v / sum_v)
+        else:
+            vis = 0.25 / (nl * nv + nv * lam_l + nl * lam_v)
+            dvis = -4.0 * vis * vis * (nv * dlam_l + nl * dlam_v)
+    else:
+        vis = visibility_term(name, g, alpha, distribution, beckmann_lambda)
+        dvis = torch.zeros_like(vis)
+    return vis, dvis
+
+
+def specular_jacobian(g: Angles, f0: Tensor, roughness: Tensor, D: str = "ggx", G: str = "smith-correlated",
+                      F: str = "schlick", beckmann_lambda: str = "rational") -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`microfacet_specular` times ``(n·l)⁺`` at perceptual ``roughness`` (α = r², its clamp included) and its
+    derivatives in closed form, for a named F (:data:`materials.fresnel.FRESNEL`).
+
+    ``value = D V F (n·l)⁺`` on the front side, so ``∂/∂f0 = D V (n·l)⁺ ∂F/∂f0`` (channel by channel,
+    :func:`materials.fresnel.fresnel_and_derivative`) and ``∂/∂r = (D′V + DV′) F (n·l)⁺ · 4r³``, with ``′`` the
+    derivatives in ``A = α²`` (:func:`_ndf_derivative`, :func:`_visibility_derivative`) and ``∂A/∂r = 4r³`` inside
+    the roughness clamp, 0 on it. Returns ``(value [..., C], ∂value/∂f0 [..., C] (the diagonal),
+    ∂value/∂r [..., C, 1])``; the tests compare each D, G and F with automatic differentiation in float64."""
+    fn = "specular_jacobian"
+    g = _angles(g, fn)
+    if not isinstance(f0, Tensor):
+        raise TypeError(f"{fn}: f0 must be a torch.Tensor [..., C], got {type(f0).__name__}")
+    if not isinstance(roughness, Tensor) or roughness.dim() == 0 or roughness.shape[-1] != 1:
+        raise ValueError(f"{fn}: roughness must be a torch.Tensor [..., 1] of perceptual roughness, got "
+                         f"{tuple(roughness.shape) if isinstance(roughness, Tensor) else type(roughness).__name__}")
+    _choice(D, DISTRIBUTIONS, "normal distribution D")
+    _choice(G, GEOMETRIES, "geometry term G")
+    _choice(beckmann_lambda, BECKMANN_LAMBDAS, "Beckmann Λ form")
+    rc = roughness.clamp(rough.R_MIN, 1.0)
+    inside = ((roughness >= rough.R_MIN) & (roughness <= 1.0)).to(roughness.dtype)
+    alpha = rc * rc
+    dist, ddist = _ndf_derivative(D, g.nh, alpha)
+    vis, dvis = _visibility_derivative(G, g, alpha, D, beckmann_lambda)
+    fres, dfres = fresnel_and_derivative(F, f0, g.fresnel_cos)
+    w = torch.where(g.front, g.nl.clamp_min(0.0), torch.zeros_like(g.nl))               # the front side's (n·l)⁺
+    dv = w * dist * vis                                                                  # [..., 1]
+    dr = w * (ddist * vis + dist * dvis) * (4.0 * rc * alpha * inside)                   # ∂(D V (n·l)⁺)/∂r
+    value = dv * fres
+    return value, (dv * dfres).expand_as(value), (dr * fres).unsqueeze(-1)
+
+
 # -- models -----------------------------------------------------------------------------------------
 #: Fresnel forms under which the BRDF is affine in f0 (a closed-form solve is possible).
 _AFFINE_IN_F0 = ("none", "schlick", "sg")
@@ -418,54 +549,11 @@ class Microfacet(Model):
                                    beckmann_lambda=self.beckmann_lambda)
 
     def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
-        """Closed form for D = ggx, G = smith-correlated or smith, F = schlick or none (None for the other options).
-
-        With ``a = α²``, ``c = n·h``, ``d = 1 + c²(a − 1)``: ``D = a/(π d²)``, ``∂D/∂a = (d − 2ac²)/(π d³)``;
-        with ``R_x = √(a + (1 − a) x²)``, ``∂R_x/∂a = (1 − x²)/(2 R_x)``: height-correlated
-        ``V = 1/(2(n·v R_l + n·l R_v))``, ``∂V/∂a = −2V² (n·v ∂R_l + n·l ∂R_v)``; separable (GGX's
-        ``cos·Λ = (R − cos)/2``) ``V = 1/((n·l + R_l)(n·v + R_v))``,
-        ``∂V/∂a = −V (∂R_l/(n·l + R_l) + ∂R_v/(n·v + R_v))``;
-        ``α = r²`` so ``∂a/∂r = 4r³`` inside the roughness clamp and 0 on it.
-        Schlick's ``F = f0 + (1 − f0) s``, ``s = (1 − l·h)⁵``, is affine in f0: ``∂F/∂f0 = 1 − s``. The value
-        is ``D V F (n·l)⁺`` on the front side (:func:`microfacet_specular`); the tests compare both with automatic
-        differentiation in float64.
-        """
-        if not (self.shades_as(Microfacet) and self.D == "ggx" and self.G in ("smith-correlated", "smith")
-                and self.F in ("schlick", "none")):
+        """Closed form for every D, G and named F (:func:`specular_jacobian`); None for a callable F."""
+        if not (self.shades_as(Microfacet) and isinstance(self.F, str)):
             return None
-        f0, r = p["f0"], p["roughness"]
-        rc = r.clamp(rough.R_MIN, 1.0)
-        inside = ((r >= rough.R_MIN) & (r <= 1.0)).to(r.dtype)
-        alpha = rc * rc
-        a2 = alpha * alpha
-        c = g.nh.clamp(0.0, 1.0)
-        d = (1.0 - c) * (1.0 + c) + c * c * a2          # as ndf_ggx forms it
-        inv_d = 1.0 / d
-        lit = g.nh > 0
-        dist = torch.where(lit, a2 * inv_d * inv_d / math.pi, torch.zeros_like(d))
-        ddist = torch.where(lit, (d - 2.0 * a2 * c * c) * inv_d * inv_d * inv_d / math.pi, torch.zeros_like(d))
-        nl = g.nl.clamp(COS_EPS, 1.0)
-        nv = g.nv.clamp(COS_EPS, 1.0)
-        root_l, root_v = _ggx_root(nl, a2), _ggx_root(nv, a2)
-        droot_l, droot_v = 0.5 * (1.0 - nl * nl) / root_l, 0.5 * (1.0 - nv * nv) / root_v
-        if self.G == "smith-correlated":
-            vis = 0.5 / (nv * root_l + nl * root_v)
-            dvis = -2.0 * vis * vis * (nv * droot_l + nl * droot_v)
-        else:
-            sum_l, sum_v = nl + root_l, nv + root_v
-            vis = 1.0 / (sum_l * sum_v)
-            dvis = -vis * (droot_l / sum_l + droot_v / sum_v)
-        w = torch.where(g.front, g.nl.clamp_min(0.0), torch.zeros_like(g.nl))            # the front side's (n·l)⁺
-        dv = w * dist * vis                                                              # [..., 1]
-        dr = w * (ddist * vis + dist * dvis) * (4.0 * rc * alpha * inside)               # ∂(D V (n·l)⁺)/∂r
-        if self.F == "schlick":
-            s = (1.0 - g.fresnel_cos.clamp(0.0, 1.0)).pow(5)
-            fres = f0 + (1.0 - f0) * s
-            df0 = dv * (1.0 - s)
-        else:
-            fres, df0 = f0, dv
-        value = dv * fres
-        return value, {"f0": df0.expand_as(value), "roughness": (dr * fres).unsqueeze(-1)}
+        value, df0, dr = specular_jacobian(g, p["f0"], p["roughness"], self.D, self.G, self.F, self.beckmann_lambda)
+        return value, {"f0": df0, "roughness": dr}
 
 
 @register("cook-torrance", "Cook & Torrance 1981: Lambert + Beckmann D, V-cavity G, exact Fresnel from f0")
@@ -485,3 +573,12 @@ class CookTorrance(Model):
         alpha = rough.roughness_to_alpha(p["roughness"])
         spec = microfacet_specular(g, p["f0"], alpha, D="beckmann", G="cook-torrance", F=fresnel_from_f0)
         return lambert(g, p["albedo"]) + spec
+
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """Lambert's ``ρ (n·l)⁺/π`` plus :func:`specular_jacobian` with D = beckmann, G = cook-torrance, F = exact."""
+        if not self.shades_as(CookTorrance):
+            return None
+        spec, df0, dr = specular_jacobian(g, p["f0"], p["roughness"], D="beckmann", G="cook-torrance", F="exact")
+        w = torch.where(g.front, g.nl.clamp_min(0.0) * INV_PI, torch.zeros_like(g.nl))   # Lambert's, as lambert()
+        value = p["albedo"] * w + spec
+        return value, {"albedo": w.expand_as(value), "f0": df0, "roughness": dr}

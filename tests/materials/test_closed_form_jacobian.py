@@ -5,8 +5,9 @@ import torch
 
 import materials
 from materials import Angles, KnownParams, SumModel
+from materials.fresnel import FRESNEL, fresnel_and_derivative
 from materials.lambert import Lambert
-from materials.microfacet import Microfacet
+from materials.microfacet import BECKMANN_LAMBDAS, DISTRIBUTIONS, GEOMETRIES, Microfacet
 from materials.params import ALBEDO
 from materials.roughness import R_MIN
 
@@ -22,7 +23,8 @@ def _angles(n: int, gen: torch.Generator) -> Angles:
 def _params(model, n: int, gen: torch.Generator) -> dict[str, torch.Tensor]:
     p = {}
     for s in model.params:
-        x = torch.rand(n, s.channels, generator=gen, dtype=torch.float64) * (s.high - s.low) + s.low
+        high = s.high if s.high < float("inf") else s.low + 2.0          # (an absorption has no upper end)
+        x = torch.rand(n, s.channels, generator=gen, dtype=torch.float64) * (high - s.low) + s.low
         if s.name == "roughness":   # the clamp's inside, its ends and below R_MIN (held there: derivative 0)
             x[:8] = torch.tensor([0.0, R_MIN * 0.5, 1.0, 1.0, 0.999, 0.02, 0.5, 0.9], dtype=torch.float64)[:, None]
         p[s.name] = x
@@ -53,7 +55,15 @@ CLOSED = {
     "roughness known": lambda: KnownParams(materials.get("ggx-lambert"), {"roughness": 0.4}),
     "albedo and f0 known": lambda: KnownParams(materials.get("ggx-lambert"), {"albedo": 0.5, "f0": [0.9, 0.6, 0.3]}),
     "a shared part twice": lambda: SumModel(Microfacet(), Microfacet(G="smith", F="none")),
+    "cook-torrance": lambda: materials.get("cook-torrance"),
+    "cook-torrance, roughness known": lambda: KnownParams(materials.get("cook-torrance"), {"roughness": 0.3}),
+    "blinn-phong D + Lambert": lambda: SumModel(Lambert(), Microfacet(D="blinn-phong")),
 }
+# every D, G and Beckmann Λ form (GGX has one Λ), and every named F
+CLOSED.update({f"microfacet D={d} G={g} {lam}": (lambda d=d, g=g, lam=lam: Microfacet(D=d, G=g, beckmann_lambda=lam))
+               for d in DISTRIBUTIONS for g in GEOMETRIES for lam in BECKMANN_LAMBDAS
+               if not (d == "ggx" and lam == "exact")})
+CLOSED.update({f"microfacet F={f}": (lambda f=f: Microfacet(G="smith", F=f)) for f in FRESNEL})
 
 
 @pytest.mark.parametrize("name", list(CLOSED))
@@ -97,14 +107,18 @@ class _Tinted(Microfacet):
         return super().brdf(g, p) * 0.5
 
 
+def _callable_fresnel() -> Microfacet:
+    m = Microfacet()
+    m.F = lambda f0, cos: f0 * torch.ones_like(cos)     # a Fresnel form of one's own: no derivative known
+    return m
+
+
 @pytest.mark.parametrize("make", [
-    lambda: materials.get("cook-torrance"),
-    lambda: Microfacet(D="beckmann"),
-    lambda: Microfacet(G="kelemen"),
-    lambda: Microfacet(F="exact"),
+    lambda: materials.get("gotanda2014"),
+    lambda: materials.get("gotanda2012-layered"),
+    lambda: KnownParams(materials.get("gotanda2012-layered"), {"coat_ior": 1.5}),
     lambda: _Tinted(),
-    lambda: SumModel(Lambert(), Microfacet(D="blinn-phong")),
-    lambda: KnownParams(materials.get("cook-torrance"), {"roughness": 0.3}),
+    _callable_fresnel,
 ])
 def test_models_without_a_closed_form_return_none(make):
     model = make()
@@ -151,3 +165,34 @@ def test_a_sum_of_a_diagonal_and_a_full_derivative_is_the_full_one():
     torch.testing.assert_close(value, ref_value, rtol=1e-12, atol=1e-13)
     torch.testing.assert_close(grads["albedo"], ref["albedo"], rtol=1e-12, atol=1e-13)
     assert bool((ref["albedo"][:, 0, 1] != 0).any())      # the channels do mix
+
+
+@pytest.mark.parametrize("name", list(FRESNEL))
+def test_fresnel_derivatives_at_their_edges(name):
+    # f0 at 0, below and at the exact form's floor, at Schüler's kink 1/60 (a tie of its minimum) and at 1; normal,
+    # grazing and nearly grazing cosines, and one outside [0, 1] (clamped)
+    f0 = torch.tensor([0.0, 1e-13, 1e-12, 1.0 / 60.0, 0.04, 0.5, 1.0], dtype=torch.float64)
+    cos = torch.tensor([0.0, 1e-9, 0.3, 1.0, 1.5], dtype=torch.float64)
+    f0_grid = f0[:, None, None].expand(-1, len(cos), 3).clone()
+    cos_grid = cos[None, :, None].expand(len(f0), -1, 1)
+    leaf = f0_grid.clone().requires_grad_(True)
+    ref = FRESNEL[name](leaf, cos_grid)
+    (dref,) = torch.autograd.grad(ref.sum(), leaf)
+    value, d = fresnel_and_derivative(name, f0_grid, cos_grid)
+    torch.testing.assert_close(value.expand_as(ref), ref.detach(), rtol=1e-14, atol=0.0)
+    torch.testing.assert_close(d.expand_as(dref), dref, rtol=1e-10, atol=1e-14)
+    assert float(dref.abs().max()) > 0
+
+
+def test_the_specular_jacobian_checks_what_it_is_given():
+    from materials.microfacet import specular_jacobian
+
+    gen = torch.Generator().manual_seed(8)
+    g = _angles(5, gen)
+    f0 = torch.full((5, 3), 0.04, dtype=torch.float64)
+    with pytest.raises(ValueError, match="roughness"):
+        specular_jacobian(g, f0, torch.full((5, 3), 0.5, dtype=torch.float64))
+    with pytest.raises(ValueError, match="geometry term"):
+        specular_jacobian(g, f0, torch.full((5, 1), 0.5, dtype=torch.float64), G="walter")
+    with pytest.raises(ValueError, match="Fresnel"):
+        specular_jacobian(g, f0, torch.full((5, 1), 0.5, dtype=torch.float64), F="fresnel")
