@@ -173,11 +173,12 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
         assert torch.allclose(a.double(), b.double(), rtol=1e-12, atol=1e-15 * float(a.abs().max()))
 
 
-@pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert"])
+@pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert", "cook-torrance"])
 def test_the_closed_form_linearisation_is_autograds(ggx, monkeypatch, model_name):
     """The operator's linearisation from the model's closed-form derivatives equals the one from automatic
-    differentiation (float64 samples): the same kept pairs, predictions, products and per-texel blocks."""
-    sc, fp, _, T = ggx if model_name == "ggx-lambert" else _scene("lambert")
+    differentiation (float64 samples): the same kept pairs, predictions, products and per-texel blocks (Cook-Torrance:
+    a Beckmann lobe with the exact Fresnel form, whose f0 derivative is not Schlick's constant)."""
+    sc, fp, _, T = ggx if model_name == "ggx-lambert" else _scene(model_name)
     model, layout = sc.model, Layout.of(sc.model)
     sel, canon, gen = _third_of_the_pixels(fp, layout, T, 5)
     run = _linearisation(sel, T, model, layout, canon, gen)
