@@ -319,13 +319,22 @@ def _closed_form_responses(closed: tuple[Tensor, dict[str, Tensor]], lin: list[P
     response as its derivative, so one evaluation gives every column."""
     b, d = closed
 
-    def full(s: ParamSpec) -> Tensor:                     # [S, 3, C]; zero for a parameter the model does not read
-        dk = d.get(s.name)
-        if dk is None:
-            return torch.zeros(b.shape[0], 3, s.channels, dtype=ACC, device=b.device)
-        return (torch.diag_embed(dk) if dk.dim() == 2 else dk).to(ACC)
+    def zero() -> Tensor:                                 # the response to a parameter the model does not read
+        return torch.zeros(b.shape[0], 3, dtype=ACC, device=b.device)
 
-    cols = _response_columns(lin, sep, per_channel, lambda s: full(s).sum(-1), lambda s, c: full(s)[:, :, c])
+    def whole(s: ParamSpec) -> Tensor:                    # a diagonal derivative [S, 3] is this response already
+        dk = d.get(s.name)
+        return zero() if dk is None else dk.to(ACC) if dk.dim() == 2 else dk.to(ACC).sum(-1)
+
+    def single(s: ParamSpec, c: int) -> Tensor:
+        dk = d.get(s.name)
+        if dk is None or dk.dim() == 3:
+            return zero() if dk is None else dk[:, :, c].to(ACC)
+        e = zero()
+        e[:, c] = dk[:, c]
+        return e
+
+    cols = _response_columns(lin, sep, per_channel, whole, single)
     return b.to(ACC), cols
 
 
