@@ -451,12 +451,12 @@ def _visibility_derivative(name: str, g: Angles, alpha: Tensor, distribution: st
     front side (elsewhere finite, not 0: the caller's ``(n·l)⁺`` factor zeroes them).
     Separable Smith ``V = 1/(4 (n·l + λ_l)(n·v + λ_v))``, ``λ = cos·Λ``: ``∂V/∂A = −V (λ_l′/(n·l + λ_l) +
     λ_v′/(n·v + λ_v))``; height-correlated ``V = 1/(4 (n·l n·v + n·v λ_l + n·l λ_v))``:
-    ``∂V/∂A = −4V² (n·v λ_l′ + n·l λ_v′)``. GGX's ``λ = (R − cos)/2`` is written through ``R`` as
-    :func:`visibility_term` writes it."""
+    ``∂V/∂A = −4V² (n·v λ_l′ + n·l λ_v′)``. GGX's ``λ = (R − cos)/2`` enters through ``R``."""
     nl = g.nl.clamp(COS_EPS, 1.0)
     nv = g.nv.clamp(COS_EPS, 1.0)
     if name in ("smith", "smith-correlated") and distribution == "ggx":
-        # GGX's forms of visibility_term, R = √(A + (1 − A) cos²) = cos + 2 cos·Λ, ∂R/∂A = (1 − cos²)/(2R)
+        # GGX's Smith terms through R = √(A + (1 − A) cos²) = cos + 2 cos·Λ, ∂R/∂A = (1 − cos²)/(2R): the
+        # height-correlated V as visibility_term writes it, the separable one as 1/((n·l + R_l)(n·v + R_v))
         a2 = alpha.square()
         root_l, root_v = _ggx_root(nl, a2), _ggx_root(nv, a2)
         droot_l, droot_v = 0.5 * (1.0 - nl * nl) / root_l, 0.5 * (1.0 - nv * nv) / root_v
