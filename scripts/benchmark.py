@@ -3,7 +3,7 @@
 
     python scripts/benchmark.py models [--n 1048576] [--compile NAME ...] [--device cpu|cuda] [--out docs/benchmarks.md]
 
-`models`: forward and forward+backward throughput (samples/s) of every registered model
+`models`: forward, forward+backward and per-sample Jacobian throughput (samples/s) of every registered model
 (capture.bench.models.run_models_benchmark).
 
     python scripts/benchmark.py approximations [--out docs/benchmarks.md] [--figure docs/figures/approximations.png]

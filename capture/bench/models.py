@@ -54,6 +54,10 @@ class Throughput:
     forward_per_s: float
     forward_backward_per_s: float
     compiled: bool = False
+    #: the fit's per-sample Jacobian (value and every derivative, per colour channel): None when not timed
+    jacobian_per_s: float | None = None
+    #: whether that Jacobian was the model's closed form (else one forward and three backward passes)
+    jacobian_closed_form: bool | None = None
 
 
 def _time(fn: Callable[[], None], repeats: int, device: str) -> float:
@@ -73,7 +77,10 @@ def _time(fn: Callable[[], None], repeats: int, device: str) -> float:
 def model_throughput(
     model: Model, n: int = 1 << 20, device: str = "cpu", repeats: int = 3, compile: bool = False
 ) -> Throughput:
-    """Samples per second of ``model.cosine_brdf`` forward, and forward + backward to every parameter.
+    """Samples per second of ``model.cosine_brdf`` forward, forward + backward to every parameter, and — eager
+    only — the per-sample Jacobian the fit takes: the model's closed form
+    (:meth:`materials.Model.cosine_brdf_jacobian`) where it has one, else one forward and one backward pass per
+    colour channel (``jacobian_closed_form`` says which; not timed for a model without parameters).
 
     Geometry (the Angles) is precomputed, as in the pipeline; the parameters are per-sample
     tensors, as sampled from maps. ``compile=True`` wraps the evaluation in ``torch.compile``.
@@ -101,7 +108,22 @@ def model_throughput(
 
     t_f = _time(fwd, repeats, device)
     t_fb = _time(fwd_bwd, repeats, device)
-    return Throughput(model.name, device, n, n / t_f, n / t_fb, compile)
+    if compile or not leaves:
+        return Throughput(model.name, device, n, n / t_f, n / t_fb, compile)
+    with torch.no_grad():
+        closed = model.cosine_brdf_jacobian(g, p) is not None
+
+    def jacobian():
+        if closed:
+            with torch.no_grad():
+                model.cosine_brdf_jacobian(g, p)
+            return
+        out = fn(*geo, *leaves)
+        for c in range(3):
+            torch.autograd.grad(out[..., c].sum(), leaves, retain_graph=c < 2, allow_unused=True)
+
+    t_j = _time(jacobian, repeats, device)
+    return Throughput(model.name, device, n, n / t_f, n / t_fb, compile, n / t_j, closed)
 
 
 def benchmark_models(
@@ -133,13 +155,18 @@ def run_models_benchmark(n: int = 1 << 20, device: str = "cpu", compile_names=No
     lines = [
         f"Machine: {machine_description(device)}; device `{device}`; {n} samples per call, best of 3.",
         "",
-        "| model | mode | forward (M samples/s) | forward+backward (M samples/s) |",
-        "|---|---|---|---|",
+        "The Jacobian column is the fit's per-sample Jacobian (value and every derivative, per colour channel): the "
+        "model's closed form where it has one (`cosine_brdf_jacobian`), else one forward and three backward passes.",
+        "",
+        "| model | mode | forward (M samples/s) | forward+backward (M samples/s) | Jacobian (M samples/s) |",
+        "|---|---|---|---|---|",
     ]
     for r in rows:
         mode = "torch.compile" if r["compiled"] else "eager"
         fwd, fwd_bwd = r["forward_per_s"] / 1e6, r["forward_backward_per_s"] / 1e6
-        lines.append(f"| `{r['model']}` | {mode} | {fwd:.1f} | {fwd_bwd:.1f} |")
+        jac = "–" if r["jacobian_per_s"] is None else \
+            f"{r['jacobian_per_s'] / 1e6:.1f} ({'closed form' if r['jacobian_closed_form'] else 'autograd'})"
+        lines.append(f"| `{r['model']}` | {mode} | {fwd:.1f} | {fwd_bwd:.1f} | {jac} |")
     table = "\n".join(lines)
     if out:
         replace_section(Path(out), "models-throughput", "## Model throughput\n\n" + table)
