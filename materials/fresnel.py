@@ -42,7 +42,7 @@ _TINY = 1e-30
 __all__ = [
     "FRESNEL", "f0_from_ior", "ior_from_f0", "fresnel_schlick", "fresnel_dielectric", "fresnel_from_f0",
     "fresnel_spherical_gaussian", "fresnel_conductor", "fresnel_schuler", "fresnel_none", "get_fresnel",
-    "fresnel_and_derivative",
+    "fresnel_and_derivative", "fresnel_dielectric_and_derivative",
 ]
 
 
@@ -348,20 +348,51 @@ def fresnel_and_derivative(name: str, f0: Tensor, cos: Tensor) -> tuple[Tensor, 
     ok_a = a2 > _TINY
     da = torch.where(ok_a, 2.0 * m * (c * c - 1.0) / (u.pow(3) * torch.where(ok_a, a, torch.ones_like(a))),
                      torch.zeros_like(a))
-
-    def quotient(num, den, dnum, dden):
-        ok = den.abs() > _TINY
-        safe = torch.where(ok, den, torch.ones_like(den))
-        value = torch.where(ok, num / safe, torch.ones_like(num))
-        return value, torch.where(ok, (dnum * safe - num * dden) / (safe * safe), torch.zeros_like(num))
-
-    rp, drp = quotient(u * c + m * a, u * c - m * a, c + a + m * da, c - a - m * da)
-    rs, drs = quotient(m * c + u * a, m * c - u * a, c + a + u * da, c - a - u * da)
+    rp, drp = _quotient(u * c + m * a, u * c - m * a, c + a + m * da, c - a - m * da)
+    rs, drs = _quotient(m * c + u * a, m * c - u * a, c + a + u * da, c - a - u * da)
     f = 0.5 * (rp.square() + rs.square())
     df = (rp * drp + rs * drs) * 0.5 / s * inside
     live = (f0 > F0_EPS) & (f >= 0.0) & (f <= 1.0)
     return (torch.where(f0 <= F0_EPS, torch.zeros_like(f), f).clamp(0.0, 1.0),
             torch.where(live, df, torch.zeros_like(df)))
+
+
+def fresnel_dielectric_and_derivative(eta: Tensor, cos: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`fresnel_dielectric` and its derivative in η, in closed form (0 where total internal reflection, η = 1
+    or the final clamp holds — the derivatives automatic differentiation gives), for a model's closed-form Jacobian.
+
+    With ``q = c_t² = 1 − (1 − c²)/η²``, ``∂q/∂η = 2(1 − c²)/η³`` and ``∂c_t/∂η = ∂q/∂η / (2c_t)``;
+    ``r_s = (c − ηc_t)/(c + ηc_t)`` and ``r_p = (ηc − c_t)/(ηc + c_t)`` differentiated as quotients;
+    ``∂F/∂η = r_s ∂r_s/∂η + r_p ∂r_p/∂η``."""
+    fn = "fresnel_dielectric_and_derivative"
+    eta = _refl(eta, "eta", fn)
+    c = _cos(cos, fn)
+    if not torch.isfinite(eta).all() or (eta <= 0).any():
+        raise ValueError(f"{fn}: eta must be finite and > 0 (a relative refractive index), got "
+                         f"values in [{eta.min().item():.6g}, {eta.max().item():.6g}]")
+    ct2 = ((eta - 1.0) * (eta + 1.0) + c * c) / (eta * eta)
+    tir = ct2 <= 0.0
+    ct = _sqrt0(ct2)
+    ok_t = ct2 > _TINY
+    dct = torch.where(ok_t, (1.0 - c * c) / (eta * eta * eta * torch.where(ok_t, ct, torch.ones_like(ct))),
+                      torch.zeros_like(ct))
+    rs, drs = _quotient(c - eta * ct, c + eta * ct, -(ct + eta * dct), ct + eta * dct)
+    rp, drp = _quotient(eta * c - ct, eta * c + ct, c - dct, c + dct)
+    f = 0.5 * (rs.square() + rp.square())
+    df = rs * drs + rp * drp
+    f = torch.where(tir, torch.ones_like(f), f)
+    live = ~tir & (eta != 1.0) & (f >= 0.0) & (f <= 1.0)
+    return (torch.where(eta == 1.0, torch.zeros_like(f), f).clamp(0.0, 1.0),
+            torch.where(live, df, torch.zeros_like(df)))
+
+
+def _quotient(num: Tensor, den: Tensor, dnum: Tensor, dden: Tensor) -> tuple[Tensor, Tensor]:
+    """``num / den`` as :func:`_div` with fallback 1, and its derivative from ``dnum``, ``dden`` (0 where the
+    fallback holds)."""
+    ok = den.abs() > _TINY
+    safe = torch.where(ok, den, torch.ones_like(den))
+    value = torch.where(ok, num / safe, torch.ones_like(num))
+    return value, torch.where(ok, (dnum * safe - num * dden) / (safe * safe), torch.zeros_like(num))
 
 
 def get_fresnel(name: str) -> Callable[[Tensor, Tensor], Tensor]:

@@ -169,7 +169,11 @@ def clamp_cos(x: Tensor, eps: float = 1e-6) -> Tensor:
     return x.clamp_min(eps)
 
 
-def guarded_pow(base: Tensor, exponent: Tensor | float, eps: float = 1e-12) -> Tensor:
+#: :func:`guarded_pow`'s floor: a base at or below it gives 0 (and no derivative).
+POW_EPS = 1e-12
+
+
+def guarded_pow(base: Tensor, exponent: Tensor | float, eps: float = POW_EPS) -> Tensor:
     """``max(base, 0) ** exponent`` with finite value and gradient for base → 0 and any exponent ≥ 0.
 
     ``pow`` at a zero base has an infinite (or NaN) derivative with respect to the exponent and,

@@ -44,7 +44,7 @@ from torch import Tensor
 
 from . import roughness as rough
 from .fresnel import FRESNEL, fresnel_and_derivative, fresnel_from_f0
-from .geometry import Angles, guarded_pow
+from .geometry import POW_EPS, Angles, guarded_pow
 from .lambert import INV_PI, lambert
 from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
@@ -391,7 +391,8 @@ def _ndf_derivative(name: str, nh: Tensor, alpha: Tensor) -> tuple[Tensor, Tenso
 
     GGX, ``d = 1 + c²(A − 1)``: ``D = A/(π d²)``, ``∂D/∂A = (d − 2Ac²)/(π d³)``. Beckmann, ``t = tan²θ_h``:
     ``D = exp(−t/A)/(π A c⁴)``, ``∂D/∂A = D (t − A)/A²``. Blinn-Phong, ``s = 2/A − 2`` (0 where its clamp to
-    [0, S_MAX] holds): ``D = (s + 2) c^s/(2π)``, ``∂D/∂s = D (1/(s + 2) + ln c)``, ``∂s/∂A = −2/A²``."""
+    [0, S_MAX] holds): ``D = (s + 2) c^s/(2π)``, ``∂D/∂s = D (1/(s + 2) + ln c)``, ``∂s/∂A = ∂s/∂α / (2α)``
+    (:func:`materials.roughness.alpha_to_shininess_derivative`)."""
     A = alpha * alpha
     if name == "ggx":
         c = nh.clamp(0.0, 1.0)
@@ -409,13 +410,11 @@ def _ndf_derivative(name: str, nh: Tensor, alpha: Tensor) -> tuple[Tensor, Tenso
         d = torch.exp(-tan2 / A) / (math.pi * A * c2 * c2)
         zero = torch.zeros_like(d)
         return torch.where(ok, d, zero), torch.where(ok, d * (tan2 - A) / (A * A), zero)
-    s_raw = 2.0 / A - 2.0
-    s = s_raw.clamp(0.0, rough.S_MAX)
-    ok = nh.clamp(max=1.0) > 1e-12                      # guarded_pow's guard
+    s, ds = rough.alpha_to_shininess_derivative(alpha)
+    ok = nh.clamp(max=1.0) > POW_EPS                    # guarded_pow's guard
     c = torch.where(ok, nh.clamp(max=1.0), torch.ones_like(nh))
     d = torch.where(ok, (s + 2.0) / (2.0 * math.pi) * c.pow(s), torch.zeros_like(c))
-    ds = torch.where((s_raw >= 0.0) & (s_raw <= rough.S_MAX), -2.0 / (A * A), torch.zeros_like(A))
-    dd = torch.where(ok, d * (1.0 / (s + 2.0) + torch.log(c)), torch.zeros_like(d)) * ds
+    dd = torch.where(ok, d * (1.0 / (s + 2.0) + torch.log(c)), torch.zeros_like(d)) * ds / (2.0 * alpha)
     lit = nh > 0
     return torch.where(lit, d, torch.zeros_like(d)), torch.where(lit, dd, torch.zeros_like(dd))
 

@@ -35,11 +35,11 @@ from torch import Tensor
 
 from . import fresnel as _fresnel
 from .environment import Environment, HemisphereLight, SHLight
-from .geometry import Angles, guarded_pow
+from .geometry import POW_EPS, Angles, guarded_pow
 from .lambert import INV_PI
 from .model import Model, register
 from .params import ALBEDO, IOR, MIX, ROUGHNESS, SPECULAR
-from .roughness import roughness_to_shininess
+from .roughness import roughness_to_shininess, roughness_to_shininess_derivative
 
 
 def _check(g, where: str, **tensors) -> None:
@@ -100,6 +100,14 @@ def mixture(g: Angles, k_s: Tensor, shininess: Tensor, mix: Tensor) -> Tensor:
     return _masked(g, val)
 
 
+def _normalised_power(base: Tensor, s: Tensor, k: float) -> tuple[Tensor, Tensor]:
+    """``L = (s + k)/(kπ) · guarded_pow(base, s)`` and ``∂L/∂s = L (1/(s + k) + ln base)``, each ``[..., 1]``."""
+    ok = base > POW_EPS
+    b = torch.where(ok, base, torch.ones_like(base))
+    lobe = torch.where(ok, (s + k) / (k * math.pi) * b.pow(s), torch.zeros_like(b))
+    return lobe, lobe * (1.0 / (s + k) + torch.log(b))
+
+
 class _Nielsen(Model):
     variant = ""
 
@@ -118,6 +126,39 @@ class _Nielsen(Model):
         if self.fresnel:
             spec = spec * nielsen_fresnel(g, p["ior"])
         return diffuse + spec
+
+    def _lobe_derivative(self, g: Angles, s: Tensor, p: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, dict]:
+        """The variant's specular lobe without its coefficient and Fresnel factor, ``[..., 1]``, its derivative in
+        the exponent s and those in its other parameters (``{name: [..., 1]}``)."""
+        raise NotImplementedError
+
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """``(ρ_d/π + c_s L(s) R_F(l·h, η)) (n·l)⁺`` on the front side with ``L`` the variant's lobe
+        (:meth:`_lobe_derivative`: ``L = (s + k)/(kπ) b^s``, ``∂L/∂s = L (1/(s + k) + ln b)`` for eq 1 (b = r·v, k = 2)
+        and eq 2 (b = n·h, k = 8); ``L = b^s``, ``∂L/∂s = L ln b``, ``∂L/∂α = L s (n·h⁴ − r·v)/b`` for eq 3), ``s``
+        from roughness (:func:`materials.roughness.roughness_to_shininess_derivative`) and ``R_F`` with its
+        η-derivative (:func:`materials.fresnel.fresnel_dielectric_and_derivative`; 1 without Fresnel). ρ_d and the
+        specular coefficient act per channel (diagonal derivatives). None for a subclass that changes the lobe."""
+        owner = next(c for c in type(self).__mro__ if "_lobe_derivative" in c.__dict__)
+        if not (self.shades_as(_Nielsen) and owner is not _Nielsen and type(self)._specular is owner._specular):
+            return None
+        s, ds = roughness_to_shininess_derivative(p["roughness"])
+        lobe, dlobe, extra = self._lobe_derivative(g, s, p)
+        w = torch.where(g.front, g.nl.clamp_min(0.0), torch.zeros_like(g.nl))              # the front side's (n·l)⁺
+        if self.fresnel:
+            rf, drf = _fresnel.fresnel_dielectric_and_derivative(p["ior"], g.fresnel_cos)
+        else:
+            rf, drf = torch.ones_like(lobe), None
+        ks = p["specular"]
+        spec = w * lobe * rf                                                                  # [..., 1]
+        value = p["albedo"] * (w * INV_PI) + ks * spec
+        grads = {"albedo": (w * INV_PI).expand_as(value), "specular": spec.expand_as(value),
+                 "roughness": (ks * (w * dlobe * ds * rf)).unsqueeze(-1)}
+        for name, d in extra.items():
+            grads[name] = (ks * (w * d * rf)).unsqueeze(-1)
+        if drf is not None:
+            grads["ior"] = (ks * (w * lobe * drf)).unsqueeze(-1)
+        return value, grads
 
     def environment_split(
         self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor], fresnel_cos: Tensor | None = None
@@ -161,6 +202,9 @@ class NielsenPhong(_Nielsen):
     def _specular(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
         return modified_phong(g, p["specular"], roughness_to_shininess(p["roughness"]))
 
+    def _lobe_derivative(self, g: Angles, s: Tensor, p: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, dict]:
+        return (*_normalised_power(g.rv, s, 2.0), {})
+
 
 @register("nielsen-blinn-phong", "Nielsen eq 2: Lambert + modified Blinn-Phong ρ_s R_F (s+8)/(8π) (n·h)^s")
 class NielsenBlinnPhong(_Nielsen):
@@ -170,6 +214,9 @@ class NielsenBlinnPhong(_Nielsen):
 
     def _specular(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
         return modified_blinn_phong(g, p["specular"], roughness_to_shininess(p["roughness"]))
+
+    def _lobe_derivative(self, g: Angles, s: Tensor, p: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, dict]:
+        return (*_normalised_power(g.nh, s, 8.0), {})
 
 
 @register("nielsen-mixture", "Nielsen eq 3: Lambert + k_s R_F ((1−α) r·v + α (n·h)^4)^s, the Phong/Blinn-Phong mixture")
@@ -184,3 +231,11 @@ class NielsenMixture(_Nielsen):
 
     def _specular(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
         return mixture(g, p["specular"], roughness_to_shininess(p["roughness"]), p["mix"])
+
+    def _lobe_derivative(self, g: Angles, s: Tensor, p: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, dict]:
+        nh4 = g.nh.clamp_min(0.0).square().square()
+        base = mixture_base(g, p["mix"])
+        ok = base > POW_EPS
+        b = torch.where(ok, base, torch.ones_like(base))
+        lobe = torch.where(ok, b.pow(s), torch.zeros_like(b))
+        return lobe, lobe * torch.log(b), {"mix": lobe * s * (nh4 - g.rv) / b}

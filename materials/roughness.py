@@ -57,6 +57,24 @@ def alpha_to_shininess(alpha: Tensor) -> Tensor:
     return (2.0 / a.square() - 2.0).clamp(0.0, S_MAX)
 
 
+def alpha_to_shininess_derivative(alpha: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`alpha_to_shininess` and its derivative ``∂s/∂α = −4/α³``, 0 where a clamp holds (on α or on s) —
+    the values and derivatives automatic differentiation gives; for the models' closed-form Jacobians."""
+    alpha = _t(alpha)
+    a = alpha.clamp(ALPHA_MIN, 1.0)
+    raw = 2.0 / a.square() - 2.0
+    keep = (alpha >= ALPHA_MIN) & (alpha <= 1.0) & (raw >= 0.0) & (raw <= S_MAX)
+    return raw.clamp(0.0, S_MAX), torch.where(keep, -4.0 / (a * a * a), torch.zeros_like(a))
+
+
+def roughness_to_shininess_derivative(r: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`roughness_to_shininess` and its derivative ``∂s/∂r`` (through α = r², 0 where a clamp holds)."""
+    r = _t(r)
+    rc = r.clamp(R_MIN, 1.0)
+    s, ds = alpha_to_shininess_derivative(rc.square())
+    return s, torch.where((r >= R_MIN) & (r <= 1.0), ds * 2.0 * rc, torch.zeros_like(ds))
+
+
 def shininess_to_alpha(s: Tensor) -> Tensor:
     """Blinn-Phong exponent s ≥ 0 → α = √(2/(s + 2)) (s clamped to [0, S_MAX])."""
     return torch.sqrt(2.0 / (_t(s).clamp(0.0, S_MAX) + 2.0))

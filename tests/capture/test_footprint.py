@@ -114,11 +114,16 @@ def test_pixel_operator_products_are_the_jacobian_of_the_pixels(ggx, form):
 
 
 def _third_of_the_pixels(fp, layout, T: int, seed: int):
-    """Every third pixel of ``fp`` with float64 samples, random canonical maps in [0.1, 0.9] and the generator."""
+    """Every third pixel of ``fp`` with float64 samples, random canonical maps from 10 % to 90 % of each
+    parameter's range (of [low, low + 1] for an unbounded one) and the generator."""
     sel = fp.select(torch.arange(fp.n_pixels) % 3 == 0)
     sel.samples = sel.samples.to(dtype=torch.float64)
     gen = torch.Generator().manual_seed(seed)
-    return sel, torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1, gen
+    canon = torch.rand(T * T, layout.P, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    for s in layout.specs:
+        span = s.high - s.low if s.high < float("inf") else 1.0
+        canon[:, layout.cols(s.name)] = s.low + span * canon[:, layout.cols(s.name)]
+    return sel, canon, gen
 
 
 def _linearisation(sel, T: int, model, layout, canon, gen):
@@ -173,7 +178,7 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
         assert torch.allclose(a.double(), b.double(), rtol=1e-12, atol=1e-15 * float(a.abs().max()))
 
 
-@pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert", "cook-torrance"])
+@pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert", "cook-torrance", "nielsen-mixture"])
 def test_the_closed_form_linearisation_is_autograds(ggx, monkeypatch, model_name):
     """The operator's linearisation from the model's closed-form derivatives equals the one from automatic
     differentiation (float64 samples): the same kept pairs, predictions, products and per-texel blocks (Cook-Torrance:

@@ -5,9 +5,10 @@ import torch
 
 import materials
 from materials import Angles, KnownParams, SumModel
-from materials.fresnel import FRESNEL, fresnel_and_derivative
+from materials.fresnel import FRESNEL, fresnel_and_derivative, fresnel_dielectric, fresnel_dielectric_and_derivative
 from materials.lambert import Lambert
 from materials.microfacet import BECKMANN_LAMBDAS, DISTRIBUTIONS, GEOMETRIES, Microfacet
+from materials.nielsen import NielsenPhong
 from materials.params import ALBEDO
 from materials.roughness import R_MIN
 
@@ -59,6 +60,9 @@ CLOSED = {
     "cook-torrance, roughness known": lambda: KnownParams(materials.get("cook-torrance"), {"roughness": 0.3}),
     "blinn-phong D + Lambert": lambda: SumModel(Lambert(), Microfacet(D="blinn-phong")),
 }
+CLOSED.update({f"{name}, fresnel={fres}": (lambda name=name, fres=fres: materials.get(name, fresnel=fres))
+               for name in ("nielsen-phong", "nielsen-blinn-phong", "nielsen-mixture") for fres in (True, False)})
+CLOSED["nielsen-mixture, ior known"] = lambda: KnownParams(materials.get("nielsen-mixture"), {"ior": 1.33})
 # every D, G and Beckmann Λ form (GGX has one Λ), and every named F
 CLOSED.update({f"microfacet D={d} G={g} {lam}": (lambda d=d, g=g, lam=lam: Microfacet(D=d, G=g, beckmann_lambda=lam))
                for d in DISTRIBUTIONS for g in GEOMETRIES for lam in BECKMANN_LAMBDAS
@@ -107,6 +111,13 @@ class _Tinted(Microfacet):
         return super().brdf(g, p) * 0.5
 
 
+class _SharperPhong(NielsenPhong):
+    """A Nielsen variant whose lobe differs from its parent's: the parent's closed form no longer holds."""
+
+    def _specular(self, g, p):
+        return super()._specular(g, p).square()
+
+
 def _callable_fresnel() -> Microfacet:
     m = Microfacet()
     m.F = lambda f0, cos: f0 * torch.ones_like(cos)     # a Fresnel form of one's own: no derivative known
@@ -119,6 +130,7 @@ def _callable_fresnel() -> Microfacet:
     lambda: KnownParams(materials.get("gotanda2012-layered"), {"coat_ior": 1.5}),
     lambda: _Tinted(),
     _callable_fresnel,
+    lambda: _SharperPhong(),
 ])
 def test_models_without_a_closed_form_return_none(make):
     model = make()
@@ -196,3 +208,19 @@ def test_the_specular_jacobian_checks_what_it_is_given():
         specular_jacobian(g, f0, torch.full((5, 1), 0.5, dtype=torch.float64), G="walter")
     with pytest.raises(ValueError, match="Fresnel"):
         specular_jacobian(g, f0, torch.full((5, 1), 0.5, dtype=torch.float64), F="fresnel")
+
+
+def test_the_dielectric_fresnel_derivative_at_its_edges():
+    # η at 1 (no interface), just above it, below 1 (total internal reflection past the critical angle) and high;
+    # normal, grazing and nearly grazing cosines, and one outside [0, 1]
+    eta = torch.tensor([1.0, 1.0000001, 0.7, 1.33, 1.5, 3.0], dtype=torch.float64)
+    cos = torch.tensor([0.0, 1e-9, 0.3, 0.6, 1.0, 1.5], dtype=torch.float64)
+    eta_grid = eta[:, None, None].expand(-1, len(cos), 1).clone()
+    cos_grid = cos[None, :, None].expand(len(eta), -1, 1)
+    leaf = eta_grid.clone().requires_grad_(True)
+    ref = fresnel_dielectric(leaf, cos_grid)
+    (dref,) = torch.autograd.grad(ref.sum(), leaf)
+    value, d = fresnel_dielectric_and_derivative(eta_grid, cos_grid)
+    torch.testing.assert_close(value, ref.detach(), rtol=1e-14, atol=0.0)
+    torch.testing.assert_close(d, dref, rtol=1e-10, atol=1e-14)
+    assert float(dref.abs().max()) > 0 and bool((d[2] == 0).any())      # η 0.7: reflected totally at grazing
