@@ -57,6 +57,12 @@ MISFIT_RETRY = 10.0
 #: from the pixel-centre solution, which is close wherever texels are larger than pixels, so a few steps converge;
 #: each is stopped early when the cost drops by less than 1e-6 (relative).
 FOOTPRINT_STEPS = 6
+#: A per-texel value of a parameter no texel determines is wild above this many times the observed texels' median:
+#: it is filled before the bilinear stages, which would mix it into its neighbours' predictions. Nielsen's specular
+#: scale (up to SPECULAR_MAX ≈ 1e4, as it absorbs the lobe's normalisation) fitted from a lobe's tail reached 6 500
+#: against a truth ≤ 1; 256² Nielsen Blinn-Phong photos then gave a χ² per residual of 2.3e5 (truth 0.19), 1.7e2 with
+#: the values above 100 × the median filled and 13 above 10 × (docs/log.md, "Nielsen's fits")
+WILD_FACTOR = 10.0
 #: Untied footprint steps run first when the reflectance sharing anchors the materials: the sharing's materials come
 #: from the pixel-centre fit, biased where pixels mix texels or highlights, so the material tie (``anchor_weight``)
 #: would hold that bias. These steps run without it, the materials are re-estimated from the anchors' footprint fits
@@ -240,18 +246,29 @@ def _share(fit: _Fit, theta: Tensor, std: dict, observed_n: Tensor, info: dict) 
     return theta, _Sharing(theta_texel, shared_names, std, observed_n, scarce, sinfo, material_of)
 
 
-def _fill_undetermined(layout: Layout, theta: Tensor, canon: Tensor, good: dict, H: int, W: int) -> None:
-    """Replace in place the per-texel parameters of θ the photos do not determine (``good``) by pull-push fills."""
+def _fill_undetermined(layout: Layout, theta: Tensor, canon: Tensor, good: dict, observed: Tensor, H: int, W: int,
+                       partial: bool = True) -> None:
+    """Replace in place per-texel parameters of θ by pull-push fills: with ``partial``, those the photos do not
+    determine (``good``) of a parameter some texels determine, by fills of the determined ones; for a parameter no
+    texel determines, the wild values — above :data:`WILD_FACTOR` × the observed texels' median (``observed [T]``
+    bool), per channel — by fills of the others."""
     T = H * W
     # per-texel parameters the photos do not determine vary wildly from texel to texel; under
     # bilinear sampling they would mix into the neighbours' predictions, so they are replaced
     # by pull-push fills of the observable ones before the joint refinement
     for s_, o in zip(layout.specs, layout.offsets, strict=True):
         sl = slice(o, o + s_.channels)
-        ok = good[s_.name].reshape(H, W)
-        if bool(ok.any()) and not bool(ok.all()):
-            filled_c = pull_push(canon[:, sl].reshape(H, W, -1), ok).reshape(T, -1)
-            theta[:, sl] = from_canonical(s_, filled_c)
+        ok = good[s_.name]
+        if bool(ok.all()) or (bool(ok.any()) and not partial) or not bool(observed.any()):
+            continue
+        if not bool(ok.any()):
+            x = canon[:, sl]
+            tame = (x <= WILD_FACTOR * x[observed].median(0).values.clamp_min(1e-12)).all(-1)
+            if bool(tame[observed].all()) or not bool((tame & observed).any()):
+                continue
+            ok = tame & observed
+        filled_c = pull_push(canon[:, sl].reshape(H, W, -1), ok.reshape(H, W)).reshape(T, -1)
+        theta[:, sl] = from_canonical(s_, filled_c)
 
 
 def _fill_footprint_only(theta: Tensor, fitted: Tensor, read: Tensor, H: int, W: int) -> int:
@@ -505,8 +522,8 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
     # pixel-centre one (and its fill) before it only moves the start (Mitsuba torus, 12 × 256², Lambert: well-lit
     # albedo 0.0110 with it, 0.0107 without, χ² per residual 0.19 both)
     joint = joint and (share or footprints is None or opts.joint_iterations is not None)
-    if joint and opts.fill_before_joint and not share:
-        _fill_undetermined(layout, theta, canon, good, H, W)
+    if plan.joint and opts.fill_before_joint and not share:     # (before the footprint steps too: wild values only)
+        _fill_undetermined(layout, theta, canon, good, observed_n, H, W, partial=joint)
     if joint:
         theta, jinfo = _joint_stage(fit, theta, share, sharing, info)
         info.update(jinfo)

@@ -449,3 +449,58 @@ def test_linear_solve_cost_is_the_data_term_at_the_solution(name):
     direct = texel_cost(obs, obs.predict(model, {k: v[obs.texel] for k, v in lay.unpack(cand).items()}), "l2", 1.0)
     torch.testing.assert_close(cost, direct, rtol=1e-10, atol=1e-9)
     assert float(direct.min()) > 1e-6                       # a real misfit in every texel (measured ≥ 1e-5)
+
+
+def test_wild_values_of_a_parameter_no_texel_determines_are_filled():
+    """Before the bilinear stages: a parameter some texels determine has its other texels filled from them (with
+    ``partial``); one no texel determines keeps its values but those above WILD_FACTOR × the observed texels'
+    median, which are filled from the rest — bilinear reads would mix them into the neighbours."""
+    from capture.fit.fast import WILD_FACTOR, _fill_undetermined
+
+    model = materials.get("nielsen-blinn-phong")
+    layout = Layout.of(model)
+    H, W = 4, 4
+    T = H * W
+    gen = torch.Generator().manual_seed(3)
+    canon = torch.empty(T, layout.P, dtype=torch.float64)
+    for s in layout.specs:
+        span = min(s.high, s.low + 1.0) - s.low
+        canon[:, layout.cols(s.name)] = s.low + span * (0.2 + 0.6 * torch.rand(T, s.channels, generator=gen,
+                                                                                 dtype=torch.float64))
+    ks = layout.cols("specular")
+    canon[5, ks] = 40.0 * WILD_FACTOR             # a lobe's tail fitted by a huge scale
+    canon[9, ks[0]] = 2.0 * WILD_FACTOR           # wild in one channel
+    observed = torch.ones(T, dtype=torch.bool)
+    observed[15] = False
+    good = {s.name: torch.zeros(T, dtype=torch.bool) for s in layout.specs}
+    good["albedo"][:8] = True                     # albedo determined in half the texels
+    theta = layout.pack({s.name: canon[:, layout.cols(s.name)] for s in layout.specs})
+    before = layout.canonical(theta.clone())
+
+    def filled(partial):
+        th = theta.clone()
+        _fill_undetermined(layout, th, before, good, observed, H, W, partial=partial)
+        return layout.canonical(th)
+
+    after = filled(partial=False)
+    changed = (after - before).abs() > 1e-9
+    # only the specular scale's two wild texels (and the unobserved one, filled too) move, to values no wilder
+    # than the others
+    assert torch.equal(changed.any(0), torch.isin(torch.arange(layout.P), torch.tensor(ks)))
+    assert torch.equal(torch.nonzero(changed.any(-1)).reshape(-1), torch.tensor([5, 9, 15]))
+    tame = before[observed][:, ks].max()
+    assert float(after[[5, 9]][:, ks].max()) <= float(tame) + 1e-9
+    # with partial, the undetermined albedo texels are filled from the determined ones too
+    after_p = filled(partial=True)
+    alb = layout.cols("albedo")
+    assert bool(((after_p[8:, alb] - before[8:, alb]).abs() > 1e-9).any())
+    assert torch.allclose(after_p[:8, alb], before[:8, alb])
+    assert torch.allclose(after_p[:, ks], after[:, ks])
+    # nothing wild: nothing moves
+    calm = before.clone()
+    calm[5, ks] = calm[0, ks]
+    calm[9, ks] = calm[0, ks]
+    th = layout.pack({s.name: calm[:, layout.cols(s.name)] for s in layout.specs})
+    ref = th.clone()
+    _fill_undetermined(layout, th, calm, good, observed, H, W, partial=False)
+    assert torch.equal(th, ref)
