@@ -159,7 +159,18 @@ def fresnel_dielectric(eta, cos) -> Tensor:
     Returns:
         ``[..., C]`` in [0, 1]; ((η − 1)/(η + 1))² at cos = 1, 1 at cos = 0 (η ≠ 1).
     """
-    fn = "fresnel_dielectric"
+    eta, c, ct2, ct = _refracted(eta, cos, "fresnel_dielectric")
+    tir = ct2 <= 0.0
+    rs = _div(c - eta * ct, c + eta * ct, 1.0)
+    rp = _div(eta * c - ct, eta * c + ct, 1.0)
+    f = 0.5 * (rs.square() + rp.square())
+    f = torch.where(tir, torch.ones_like(f), f)
+    return torch.where(eta == 1.0, torch.zeros_like(f), f).clamp(0.0, 1.0)
+
+
+def _refracted(eta, cos, fn: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(η, c, cos²θ_t, cos θ_t)`` of :func:`fresnel_dielectric` with ``η`` and ``cos`` checked (``fn`` names the
+    caller), ``c`` clamped to [0, 1] and ``cos θ_t`` 0 past the critical angle."""
     eta = _refl(eta, "eta", fn)
     c = _cos(cos, fn)
     if not torch.isfinite(eta).all() or (eta <= 0).any():
@@ -168,13 +179,7 @@ def fresnel_dielectric(eta, cos) -> Tensor:
     # cos²θ_t = 1 − sin²θ_t = ((η − 1)(η + 1) + c²)/η², without the cancellation of 1 − (1 − c²)/η²: at grazing
     # incidence with η ≈ 1 float32 lost c² in 1 − c² (η 1.000001, c 1e-4: F 0.7482 against 0.7487 in float64)
     ct2 = ((eta - 1.0) * (eta + 1.0) + c * c) / (eta * eta)
-    tir = ct2 <= 0.0
-    ct = _sqrt0(ct2)
-    rs = _div(c - eta * ct, c + eta * ct, 1.0)
-    rp = _div(eta * c - ct, eta * c + ct, 1.0)
-    f = 0.5 * (rs.square() + rp.square())
-    f = torch.where(tir, torch.ones_like(f), f)
-    return torch.where(eta == 1.0, torch.zeros_like(f), f).clamp(0.0, 1.0)
+    return eta, c, ct2, _sqrt0(ct2)
 
 
 def fresnel_from_f0(f0, cos) -> Tensor:
@@ -364,15 +369,8 @@ def fresnel_dielectric_and_derivative(eta: Tensor, cos: Tensor) -> tuple[Tensor,
     With ``q = c_t² = 1 − (1 − c²)/η²``, ``∂q/∂η = 2(1 − c²)/η³`` and ``∂c_t/∂η = ∂q/∂η / (2c_t)``;
     ``r_s = (c − ηc_t)/(c + ηc_t)`` and ``r_p = (ηc − c_t)/(ηc + c_t)`` differentiated as quotients;
     ``∂F/∂η = r_s ∂r_s/∂η + r_p ∂r_p/∂η``."""
-    fn = "fresnel_dielectric_and_derivative"
-    eta = _refl(eta, "eta", fn)
-    c = _cos(cos, fn)
-    if not torch.isfinite(eta).all() or (eta <= 0).any():
-        raise ValueError(f"{fn}: eta must be finite and > 0 (a relative refractive index), got "
-                         f"values in [{eta.min().item():.6g}, {eta.max().item():.6g}]")
-    ct2 = ((eta - 1.0) * (eta + 1.0) + c * c) / (eta * eta)
+    eta, c, ct2, ct = _refracted(eta, cos, "fresnel_dielectric_and_derivative")
     tir = ct2 <= 0.0
-    ct = _sqrt0(ct2)
     ok_t = ct2 > _TINY
     dct = torch.where(ok_t, (1.0 - c * c) / (eta * eta * eta * torch.where(ok_t, ct, torch.ones_like(ct))),
                       torch.zeros_like(ct))
