@@ -42,11 +42,11 @@ from torch import Tensor
 
 from . import fresnel as _fresnel
 from .environment import Environment, HemisphereLight, SHLight
-from .geometry import Angles, clamp_cos, guarded_pow, reflect
+from .geometry import POW_EPS, Angles, clamp_cos, guarded_pow, reflect
 from .lambert import INV_PI
 from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
-from .roughness import roughness_to_shininess
+from .roughness import roughness_to_shininess, roughness_to_shininess_derivative
 
 #: Gotanda's linear fit of the normalisation (2012 eq 1): N ≈ FIT_SLOPE · s + FIT_INTERCEPT.
 FIT_SLOPE = 0.0397436
@@ -110,6 +110,20 @@ def gotanda_normalization(shininess: Tensor, normalization: str = "fit") -> Tens
     if normalization == "fit":
         return gotanda_normalization_fit(shininess)
     return gotanda_normalization_exact(shininess)
+
+
+def gotanda_normalization_derivative(shininess: Tensor, normalization: str = "fit") -> tuple[Tensor, Tensor]:
+    """:func:`gotanda_normalization` and its derivative in s: the fit's slope, or, for the exact form
+    ``N = (s + 2)/(4π D)`` with ``D = 2 − 2^(−s/2)``, ``∂N/∂s = (D − (s + 2) ln2 · 2^(−s/2)/2)/(4π D²)``."""
+    _check_choice(normalization, NORMALIZATIONS, "normalization", "gotanda_normalization_derivative")
+    s = _tensor(shininess, "shininess", "gotanda_normalization_derivative")
+    if normalization == "fit":
+        return FIT_SLOPE * s + FIT_INTERCEPT, torch.full_like(s, FIT_SLOPE)
+    sc = s.clamp_min(0.0)
+    e = torch.exp2(-0.5 * sc)
+    d = 2.0 - e
+    dn = (d - (sc + 2.0) * (0.5 * math.log(2.0)) * e) / (4.0 * math.pi * d * d)
+    return (sc + 2.0) / (4.0 * math.pi * d), torch.where(s >= 0.0, dn, torch.zeros_like(dn))
 
 
 def _lobe_no_max(g: Angles, f0: Tensor, shininess: Tensor, normalization: str, fresnel: str) -> Tensor:
@@ -198,6 +212,24 @@ class _GotandaBase(Model):
         fn = gotanda_blinn_phong_cosine if cosine else gotanda_blinn_phong
         return fn(g, p["f0"], s, self.normalization, self.fresnel)
 
+    def _spec_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        """The cosine-weighted lobe ``N(s) F(f0, l·h) (n·h)^s min(1, n·l/n·v)`` on the front side and its
+        derivatives: in f0 (the diagonal, ``[..., C]``) and in roughness (``[..., C, 1]``, through s: ``∂/∂s`` of
+        ``N (n·h)^s`` is ``N′ (n·h)^s + N (n·h)^s ln(n·h)``, :func:`gotanda_normalization_derivative`,
+        :func:`materials.roughness.roughness_to_shininess_derivative`)."""
+        s, ds = roughness_to_shininess_derivative(p["roughness"])
+        n, dn = gotanda_normalization_derivative(s, self.normalization)
+        ok = g.nh > POW_EPS                                  # guarded_pow's guard
+        c = torch.where(ok, g.nh, torch.ones_like(g.nh))
+        power = torch.where(ok, c.pow(s), torch.zeros_like(c))
+        ratio = g.nl.clamp_min(0.0) / clamp_cos(torch.maximum(g.nl, g.nv))
+        w = torch.where(g.front, ratio, torch.zeros_like(ratio))                  # min(1, n·l/n·v) in front
+        f, df = _fresnel.fresnel_and_derivative(self.fresnel, p["f0"], g.fresnel_cos)
+        lobe = n * power * w                                                       # [..., 1]
+        dlobe = (dn + n * torch.log(c)) * power * w * ds                           # ∂lobe/∂r
+        value = lobe * f
+        return value, (lobe * df).expand_as(value), (dlobe * f).unsqueeze(-1)
+
     def _env_specular(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor],
                       fresnel_cos: Tensor | None = None) -> Tensor:
         """IBL specular: F(f0, n·v) · L(r). A mirror-reflection stand-in for Gotanda's AmbientBRDF
@@ -226,6 +258,13 @@ class GotandaBlinnPhong(_GotandaBase):
     def cosine_brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
         return self._spec(g, p, cosine=True)
 
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """The lobe's closed form (:meth:`_spec_jacobian`)."""
+        if not self.shades_as(GotandaBlinnPhong):
+            return None
+        value, df0, dr = self._spec_jacobian(g, p)
+        return value, {"f0": df0, "roughness": dr}
+
     def environment(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         return self._env_specular(env, n, v, p)
 
@@ -249,6 +288,17 @@ class Gotanda2010(_GotandaBase):
 
     def cosine_brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
         return self._diffuse(g, p) * g.nl.clamp_min(0.0) + self._spec(g, p, cosine=True)
+
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """``ρ (1 − f0)(n·l)⁺/π`` plus the lobe's closed form (:meth:`_spec_jacobian`): f0 acts on both terms,
+        ``−ρ (n·l)⁺/π`` on the diffuse one; each channel on its own (diagonal derivatives)."""
+        if not self.shades_as(Gotanda2010):
+            return None
+        spec, df0, dr = self._spec_jacobian(g, p)
+        w = torch.where(g.front, g.nl.clamp_min(0.0) * INV_PI, torch.zeros_like(g.nl))
+        albedo, f0 = p["albedo"], p["f0"]
+        value = albedo * (1.0 - f0) * w + spec
+        return value, {"albedo": ((1.0 - f0) * w).expand_as(value), "f0": df0 - albedo * w, "roughness": dr}
 
     def environment_split(
         self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor], fresnel_cos: Tensor | None = None

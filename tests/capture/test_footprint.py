@@ -178,7 +178,7 @@ def test_blocked_linearisation_and_placed_values_equal_the_whole(ggx, monkeypatc
         assert torch.allclose(a.double(), b.double(), rtol=1e-12, atol=1e-15 * float(a.abs().max()))
 
 
-@pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert", "cook-torrance", "nielsen-mixture"])
+@pytest.mark.parametrize("model_name", ["ggx-lambert", "lambert", "cook-torrance", "nielsen-mixture", "gotanda2010"])
 def test_the_closed_form_linearisation_is_autograds(ggx, monkeypatch, model_name):
     """The operator's linearisation from the model's closed-form derivatives equals the one from automatic
     differentiation (float64 samples): the same kept pairs, predictions, products and per-texel blocks (Cook-Torrance:

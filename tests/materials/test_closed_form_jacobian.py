@@ -63,6 +63,14 @@ CLOSED = {
 CLOSED.update({f"{name}, fresnel={fres}": (lambda name=name, fres=fres: materials.get(name, fresnel=fres))
                for name in ("nielsen-phong", "nielsen-blinn-phong", "nielsen-mixture") for fres in (True, False)})
 CLOSED["nielsen-mixture, ior known"] = lambda: KnownParams(materials.get("nielsen-mixture"), {"ior": 1.33})
+CLOSED.update({
+    "gotanda2010": lambda: materials.get("gotanda2010"),
+    "gotanda2010, exact normalisation, exact Fresnel": lambda: materials.get("gotanda2010", normalization="exact",
+                                                                            fresnel="exact"),
+    "gotanda2010-specular": lambda: materials.get("gotanda2010-specular"),
+    "gotanda2010-specular, exact normalisation, Schüler's Fresnel": lambda: materials.get(
+        "gotanda2010-specular", normalization="exact", fresnel="schuler"),
+})
 # every D, G and Beckmann Λ form (GGX has one Λ), and every named F
 CLOSED.update({f"microfacet D={d} G={g} {lam}": (lambda d=d, g=g, lam=lam: Microfacet(D=d, G=g, beckmann_lambda=lam))
                for d in DISTRIBUTIONS for g in GEOMETRIES for lam in BECKMANN_LAMBDAS
