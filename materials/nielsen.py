@@ -127,20 +127,18 @@ class _Nielsen(Model):
             spec = spec * nielsen_fresnel(g, p["ior"])
         return diffuse + spec
 
-    def _lobe_derivative(self, g: Angles, s: Tensor, p: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, dict]:
-        """The variant's specular lobe without its coefficient and Fresnel factor, ``[..., 1]``, its derivative in
-        the exponent s and those in its other parameters (``{name: [..., 1]}``)."""
-        raise NotImplementedError
-
     def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
         """``(ρ_d/π + c_s L(s) R_F(l·h, η)) (n·l)⁺`` on the front side with ``L`` the variant's lobe
         (:meth:`_lobe_derivative`: ``L = (s + k)/(kπ) b^s``, ``∂L/∂s = L (1/(s + k) + ln b)`` for eq 1 (b = r·v, k = 2)
         and eq 2 (b = n·h, k = 8); ``L = b^s``, ``∂L/∂s = L ln b``, ``∂L/∂α = L s (n·h⁴ − r·v)/b`` for eq 3), ``s``
         from roughness (:func:`materials.roughness.roughness_to_shininess_derivative`) and ``R_F`` with its
         η-derivative (:func:`materials.fresnel.fresnel_dielectric_and_derivative`; 1 without Fresnel). ρ_d and the
-        specular coefficient act per channel (diagonal derivatives). None for a subclass that changes the lobe."""
-        owner = next(c for c in type(self).__mro__ if "_lobe_derivative" in c.__dict__)
-        if not (self.shades_as(_Nielsen) and owner is not _Nielsen and type(self)._specular is owner._specular):
+        specular coefficient act per channel (diagonal derivatives). Each variant's ``_lobe_derivative`` gives its
+        lobe without coefficient and Fresnel factor ``[..., 1]``, the derivative in s and those in its other
+        parameters (``{name: [..., 1]}``); None where the class that wrote the lobe (``_specular``) wrote no
+        derivative beside it (a subclass that changes the lobe)."""
+        owner = next(c for c in type(self).__mro__ if "_specular" in c.__dict__)
+        if not (self.shades_as(_Nielsen) and "_lobe_derivative" in owner.__dict__):
             return None
         s, ds = roughness_to_shininess_derivative(p["roughness"])
         lobe, dlobe, extra = self._lobe_derivative(g, s, p)
