@@ -42,7 +42,7 @@ from torch import Tensor
 
 from . import fresnel as _fresnel
 from .environment import Environment, HemisphereLight, SHLight
-from .geometry import POW_EPS, Angles, clamp_cos, guarded_pow, reflect
+from .geometry import Angles, clamp_cos, guarded_pow, guarded_pow_log, reflect
 from .lambert import INV_PI
 from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
@@ -219,14 +219,12 @@ class _GotandaBase(Model):
         :func:`materials.roughness.roughness_to_shininess_derivative`)."""
         s, ds = roughness_to_shininess_derivative(p["roughness"])
         n, dn = gotanda_normalization_derivative(s, self.normalization)
-        ok = g.nh > POW_EPS                                  # guarded_pow's guard
-        c = torch.where(ok, g.nh, torch.ones_like(g.nh))
-        power = torch.where(ok, c.pow(s), torch.zeros_like(c))
+        power, log_c = guarded_pow_log(g.nh, s)
         ratio = g.nl.clamp_min(0.0) / clamp_cos(torch.maximum(g.nl, g.nv))
         w = torch.where(g.front, ratio, torch.zeros_like(ratio))                  # min(1, n·l/n·v) in front
         f, df = _fresnel.fresnel_and_derivative(self.fresnel, p["f0"], g.fresnel_cos)
         lobe = n * power * w                                                       # [..., 1]
-        dlobe = (dn + n * torch.log(c)) * power * w * ds                           # ∂lobe/∂r
+        dlobe = (dn + n * log_c) * power * w * ds                                  # ∂lobe/∂r
         value = lobe * f
         return value, (lobe * df).expand_as(value), (dlobe * f).unsqueeze(-1)
 

@@ -173,6 +173,15 @@ def clamp_cos(x: Tensor, eps: float = 1e-6) -> Tensor:
 POW_EPS = 1e-12
 
 
+def guarded_pow_log(base: Tensor, exponent: Tensor | float) -> tuple[Tensor, Tensor]:
+    """:func:`guarded_pow` and ``ln base`` where it is taken (0 elsewhere): ``∂/∂exponent`` of the power is their
+    product, as automatic differentiation of :func:`guarded_pow` gives it — for closed-form Jacobians."""
+    ok = base > POW_EPS
+    safe = torch.where(ok, base, torch.ones_like(base))
+    zero = torch.zeros_like(safe)
+    return torch.where(ok, safe.pow(exponent), zero), torch.where(ok, torch.log(safe), zero)
+
+
 def guarded_pow(base: Tensor, exponent: Tensor | float, eps: float = POW_EPS) -> Tensor:
     """``max(base, 0) ** exponent`` with finite value and gradient for base → 0 and any exponent ≥ 0.
 

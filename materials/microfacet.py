@@ -44,7 +44,7 @@ from torch import Tensor
 
 from . import roughness as rough
 from .fresnel import FRESNEL, fresnel_and_derivative, fresnel_from_f0
-from .geometry import POW_EPS, Angles, guarded_pow
+from .geometry import Angles, guarded_pow, guarded_pow_log
 from .lambert import INV_PI, lambert
 from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
@@ -411,10 +411,9 @@ def _ndf_derivative(name: str, nh: Tensor, alpha: Tensor) -> tuple[Tensor, Tenso
         zero = torch.zeros_like(d)
         return torch.where(ok, d, zero), torch.where(ok, d * (tan2 - A) / (A * A), zero)
     s, ds = rough.alpha_to_shininess_derivative(alpha)
-    ok = nh.clamp(max=1.0) > POW_EPS                    # guarded_pow's guard
-    c = torch.where(ok, nh.clamp(max=1.0), torch.ones_like(nh))
-    d = torch.where(ok, (s + 2.0) / (2.0 * math.pi) * c.pow(s), torch.zeros_like(c))
-    dd = torch.where(ok, d * (1.0 / (s + 2.0) + torch.log(c)), torch.zeros_like(d)) * ds / (2.0 * alpha)
+    power, log_c = guarded_pow_log(nh.clamp(max=1.0), s)
+    d = (s + 2.0) / (2.0 * math.pi) * power
+    dd = d * (1.0 / (s + 2.0) + log_c) * ds / (2.0 * alpha)
     lit = nh > 0
     return torch.where(lit, d, torch.zeros_like(d)), torch.where(lit, dd, torch.zeros_like(dd))
 

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from . import fresnel as _fresnel
 from .environment import Environment, HemisphereLight, SHLight
-from .geometry import POW_EPS, Angles, guarded_pow
+from .geometry import POW_EPS, Angles, guarded_pow, guarded_pow_log
 from .lambert import INV_PI
 from .model import Model, register
 from .params import ALBEDO, IOR, MIX, ROUGHNESS, SPECULAR
@@ -102,10 +102,9 @@ def mixture(g: Angles, k_s: Tensor, shininess: Tensor, mix: Tensor) -> Tensor:
 
 def _normalised_power(base: Tensor, s: Tensor, k: float) -> tuple[Tensor, Tensor]:
     """``L = (s + k)/(kπ) · guarded_pow(base, s)`` and ``∂L/∂s = L (1/(s + k) + ln base)``, each ``[..., 1]``."""
-    ok = base > POW_EPS
-    b = torch.where(ok, base, torch.ones_like(base))
-    lobe = torch.where(ok, (s + k) / (k * math.pi) * b.pow(s), torch.zeros_like(b))
-    return lobe, lobe * (1.0 / (s + k) + torch.log(b))
+    power, log_b = guarded_pow_log(base, s)
+    lobe = (s + k) / (k * math.pi) * power
+    return lobe, lobe * (1.0 / (s + k) + log_b)
 
 
 class _Nielsen(Model):
@@ -233,7 +232,6 @@ class NielsenMixture(_Nielsen):
     def _lobe_derivative(self, g: Angles, s: Tensor, p: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, dict]:
         nh4 = g.nh.clamp_min(0.0).square().square()
         base = mixture_base(g, p["mix"])
-        ok = base > POW_EPS
-        b = torch.where(ok, base, torch.ones_like(base))
-        lobe = torch.where(ok, b.pow(s), torch.zeros_like(b))
-        return lobe, lobe * torch.log(b), {"mix": lobe * s * (nh4 - g.rv) / b}
+        lobe, log_b = guarded_pow_log(base, s)
+        # (∂b^s/∂b = s b^s / b where the power is taken; where it is not the lobe is 0, and so is the quotient)
+        return lobe, lobe * log_b, {"mix": lobe * s * (nh4 - g.rv) / base.clamp_min(POW_EPS)}
