@@ -19,7 +19,10 @@ one-ray-per-pixel renders.
      relative second difference across the pixel, read off the photo itself
      (``max(|I(x+1) + I(x−1) − 2 I(x)|, same in y) / I``), so ``k = ceil(sqrt(c / (24 · FOOTPRINT_TOLERANCE)))``.
      In a photo noisier than the fit's noise model the part of each difference its measured noise explains is left
-     out (:func:`photo_noise`, :func:`_curvature`): noise is not curvature;
+     out (:func:`photo_noise`, :func:`_curvature`): noise is not curvature. The photo's differences also hold the
+     texture's, which the texture sub-samples below already resolve; for a model affine in its parameters
+     (Lambert) the shading alone is known before any fit — the model rendered at the pixel centres with each
+     parameter at 1 in turn (:func:`shading_bases`) — and its curvature replaces the photo's;
    * **texture sub-samples**, for the maps: ``kt = ceil(f / FOOTPRINT_SPACING)``, so that neighbouring samples are
      at most :data:`FOOTPRINT_SPACING` texels apart, capped at :data:`FOOTPRINT_TEXTURE_MAX` (they cost no ray, only
      operator entries). A pixel much smaller than a texel needs one: the maps are
@@ -61,14 +64,13 @@ from torch import Tensor
 from materials.model import Model
 from renderer.device import per_view
 from renderer.gbuffer import footprint_extent, pixel_filter, render_footprint
-from renderer.shading import prepare
+from renderer.shading import prepare, shade
 
 from .fit.noise import CHI2_1_Q10, NOISE_QUANTILE, noise_ratio
 from .observations import ObservationError, Observations, TexelTaps, ViewExtractor, noise_residual
 
-__all__ = ["PixelFootprints", "observe_footprints", "footprint_counts", "photo_noise", "texture_footprints",
-           "FOOTPRINT_SPACING",
-           "FOOTPRINT_MAX", "FOOTPRINT_TEXTURE_MAX", "SEAM_TEXELS"]
+__all__ = ["PixelFootprints", "observe_footprints", "footprint_counts", "photo_noise", "shading_bases",
+           "texture_footprints", "FOOTPRINT_SPACING", "FOOTPRINT_MAX", "FOOTPRINT_TEXTURE_MAX", "SEAM_TEXELS"]
 
 #: Largest distance (texels) between neighbouring sub-pixel samples: half a texel, so that every texel a pixel
 #: covers is read by some sample, and the bilinear interpolant's kinks (at texel centres) are bracketed.
@@ -146,6 +148,8 @@ class PixelFootprints:
         psf_sigma: σ (pixels) of the Gaussian PSF in the pixel filter (0: the box alone).
         noisy_views: views whose photo was noisier than the noise model, its noise left out of the ray counts
             (:func:`photo_noise`).
+        ray_counts: what the shading's ray counts were read off: ``"photo"`` (its curvature) or ``"model"`` (the
+            curvature of the model's shading, :func:`shading_bases`).
     """
 
     samples: Observations
@@ -163,6 +167,7 @@ class PixelFootprints:
     psf_sigma: float = 0.0
     texture_samples: int = 0
     noisy_views: int = 0
+    ray_counts: str = "photo"
 
     @property
     def n_pixels(self) -> int:
@@ -229,7 +234,7 @@ class PixelFootprints:
             counts=self.counts[keep], noise_residual=self.noise_residual[keep],
             footprint_texels=self.footprint_texels[keep], drops=dict(self.drops), cast_rays=self.cast_rays,
             uniform_rays=self.uniform_rays, psf_sigma=self.psf_sigma, texture_samples=self.texture_samples,
-            noisy_views=self.noisy_views)
+            noisy_views=self.noisy_views, ray_counts=self.ray_counts)
 
 
 def _grad_len(uv: Tensor, hit: Tensor, depth: Tensor, map_size: tuple[int, int]) -> tuple[Tensor, Tensor]:
@@ -376,8 +381,40 @@ def _object_pixels(gbuffer) -> Tensor:
     return hit.reshape(gbuffer.height, gbuffer.width)
 
 
+def shading_bases(model: Model, prepared) -> Tensor | None:
+    """``[B, H, W, 3]``: noise-free images of one view whose relative curvature bounds its shading's (module
+    docstring, step 2), for a model affine in its parameters (every ``ParamSpec.linear``: Lambert), else None.
+
+    ``prepared`` is the view's pixel-centre G-buffer with its shading (:func:`renderer.shading.prepare`). The images
+    are the model rendered there with every parameter 0 (the radiance no parameter scales) and, for each
+    parameter channel, that channel at 1 less it. A pixel's radiance is their sum weighted by its parameters (≥ 0),
+    so its relative second difference is at most the largest of theirs — the shading's, without the texture's
+    (which the texture sub-samples resolve) or any noise. A model with a nonlinear parameter (a lobe's roughness)
+    has a shading that depends on values no fit has found yet: None, and the photo's curvature is used."""
+    specs = list(model.params)
+    if not specs or not all(s.linear for s in specs):
+        return None
+    g = prepared.gbuffer
+    dtype = prepared.n.dtype
+
+    def render(name: str | None = None, channel: int = 0) -> Tensor:
+        maps = {s.name: torch.zeros(1, 1, s.channels, dtype=dtype) for s in specs}
+        if name is not None:
+            maps[name][..., channel] = 1.0
+        img = torch.zeros(g.height * g.width, 3, dtype=torch.float64)
+        img[g.pixel] = shade(model, maps, prepared).to(torch.float64)
+        return img.reshape(g.height, g.width, 3)
+
+    base = render()
+    images = [render(s.name, c) - base for s in specs for c in range(s.channels)]
+    if bool(base.abs().max() > 0):
+        images.append(base)
+    return torch.stack(images)
+
+
 def footprint_counts(gbuffer, map_size: tuple[int, int], photo: Tensor | None = None, psf_sigma: float = 0.0,
-                     noise: Tensor | None | str = "measure") -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                     noise: Tensor | None | str = "measure",
+                     shading: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per pixel of a pixel-centre G-buffer: which pixels to cast, their ray count ``k``, their texture sample
     count ``kt`` and texel footprint ``f`` (module docstring, step 2).
 
@@ -390,7 +427,9 @@ def footprint_counts(gbuffer, map_size: tuple[int, int], photo: Tensor | None = 
     coverage test sees it, and dropped as partial). ``k`` is the shading's need (the photo's curvature; the cap on
     edges), ``kt ≥ k`` the texture's (on edges ``kt = k``): each ray's stratum is read at ``ceil(kt / k)²`` texture
     sub-samples. ``noise``: the photo's noise std ``[H, W, 3]`` left out of its curvature (:func:`_curvature`), None
-    for none, or ``"measure"`` (default) for :func:`photo_noise` of the photo at the G-buffer's object pixels."""
+    for none, or ``"measure"`` (default) for :func:`photo_noise` of the photo at the G-buffer's object pixels.
+    ``shading``: noise-free images ``[B, H, W, 3]`` of the view's shading (:func:`shading_bases`) whose largest
+    curvature is the shading's need instead of the photo's (``photo`` and ``noise`` are then not read)."""
     H, W = gbuffer.height, gbuffer.width
     uv = torch.zeros(H * W, 2, dtype=torch.float64)
     depth = torch.zeros(H * W, dtype=torch.float64)
@@ -402,7 +441,13 @@ def footprint_counts(gbuffer, map_size: tuple[int, int], photo: Tensor | None = 
     extent, kmax = footprint_extent(psf_sigma), footprint_max(psf_sigma)
     kt = torch.ceil(f * extent / FOOTPRINT_SPACING)
     k = torch.ones_like(kt)
-    if photo is not None:
+    if shading is not None:
+        if shading.ndim != 4 or tuple(shading.shape[1:3]) != (H, W):
+            raise ObservationError(f"footprint_counts: shading must be [B, {H}, {W}, 3] images of the view, got "
+                                   f"{tuple(shading.shape)}")
+        curvature = torch.stack([_curvature(img) for img in shading]).amax(0)
+        k = torch.ceil(extent * torch.sqrt(curvature / (24.0 * FOOTPRINT_TOLERANCE)))
+    elif photo is not None:
         if isinstance(noise, str):
             if noise != "measure":
                 raise ObservationError(f"footprint_counts: noise must be a tensor, None or 'measure', got {noise!r}")
@@ -505,7 +550,7 @@ def _distinct(index: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
 def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centre_gbuffers: Sequence,
                        photos: Sequence[Tensor], map_size: tuple[int, int], *, lights: Sequence | None = None,
                        clipped: Sequence[Tensor] | None = None, dtype=None, shadows: bool = True,
-                       psf_sigma: float = 0.0) -> PixelFootprints:
+                       psf_sigma: float = 0.0, shading: Sequence[Tensor] | None = None) -> PixelFootprints:
     """The pixel footprints of every view (module docstring).
 
     Args:
@@ -516,6 +561,8 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
             :func:`capture.observations.observe_views`). clipped: per view ``[H, W]`` saturated-pixel masks.
         psf_sigma: σ (pixels) of a Gaussian lens/demosaicing blur convolved with the box filter (0: box only;
             :func:`renderer.gbuffer.render_footprint`).
+        shading: per view the model's shading images (:func:`shading_bases`), whose curvature then sets the ray
+            counts instead of the photos' (None: the photos').
 
     Raises:
         ObservationError: mismatched lists or no valid pixel in any view.
@@ -525,6 +572,9 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
     if not (len(lights_per_view) == len(centre_gbuffers) == len(photos) == n) or n == 0:
         raise ObservationError(f"observe_footprints: need one camera, light list, centre G-buffer and photo per "
                                f"view, got {n}, {len(lights_per_view)}, {len(centre_gbuffers)}, {len(photos)}")
+    if shading is not None and len(shading) != n:
+        raise ObservationError(f"observe_footprints: shading needs one set of images per view, got {len(shading)} "
+                               f"for {n} views")
 
     extractor = ViewExtractor(n, map_size, clipped=clipped, footprints=True, dtype=dtype)
 
@@ -532,8 +582,12 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         # one view's rays, texture footprints and shading terms, made into its kept samples at once: the prepared
         # rays of all views held until every view was made took twice the samples' memory more
         g0 = centre_gbuffers[vi]
-        sigma = photo_noise(photos[vi], _object_pixels(g0))
-        pixels, k, kt, f = footprint_counts(g0, map_size, photos[vi], psf_sigma, noise=sigma)
+        if shading is not None:
+            sigma = None
+            pixels, k, kt, f = footprint_counts(g0, map_size, psf_sigma=psf_sigma, shading=shading[vi])
+        else:
+            sigma = photo_noise(photos[vi], _object_pixels(g0))
+            pixels, k, kt, f = footprint_counts(g0, map_size, photos[vi], psf_sigma, noise=sigma)
         g = render_footprint(mesh, cameras[vi], pixels, k, psf_sigma=psf_sigma)
         cast = int((k * k).sum())
         # a pixel is whole when all its rays hit the object facing the camera
@@ -595,7 +649,8 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
     return PixelFootprints(samples=samples, group=group, share=share, radiance=samples.radiance[first].clone(),
                            view=view, pixel=pixel, counts=counts_r, noise_residual=noise, footprint_texels=foot_r,
                            drops=drops, cast_rays=cast, uniform_rays=uniform, psf_sigma=float(psf_sigma),
-                           texture_samples=sub, noisy_views=noisy)
+                           texture_samples=sub, noisy_views=noisy,
+                           ray_counts="photo" if shading is None else "model")
 
 
 def sampled_map_size(fp: PixelFootprints, min_size: int = 1) -> int:

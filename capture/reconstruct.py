@@ -75,6 +75,8 @@ from .fit.options import FitOptions
 from .observations import Observations, observe_views
 
 if TYPE_CHECKING:
+    from materials.model import Model
+
     from .dataset import Dataset
     from .footprint import PixelFootprints
     from .progress import Progress
@@ -575,7 +577,8 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
     with _timed(times, "gbuffer"):
         views = _PreparedViews(_gbuffers(data.ds, prog))
     with _timed(times, "observe"):
-        seen = _observe(data, views, solver, sampling, texture_size, footprint, psf_sigma, dtype, options, prog)
+        seen = _observe(data, views, solver, sampling, texture_size, footprint, psf_sigma, dtype, options, prog,
+                        _model(inputs.candidates[0], inputs.known) if len(inputs.candidates) == 1 else None)
     del views
     report = Report(model="", solver=solver, out_dir=str(inputs.out_dir), device=str(inputs.device))
     _report_samples(report, data, seen, footprint, solver)
@@ -806,24 +809,32 @@ def _solver_settings(views, solver: str, sampling: str | None,
 
 
 def _footprint_observer(ds: Dataset, views: _PreparedViews, photos: list, lights: list, dtype: torch.dtype,
-                        psf: float) -> Callable[[int], PixelFootprints]:
-    """The photos' pixel footprints (:func:`capture.footprint.observe_footprints`) on maps of a given size."""
-    from .footprint import observe_footprints
+                        psf: float, model: Model | None) -> Callable[[int], PixelFootprints]:
+    """The photos' pixel footprints (:func:`capture.footprint.observe_footprints`) on maps of a given size; their
+    ray counts from ``model``'s shading when it is the one model to fit and affine in its parameters
+    (:func:`capture.footprint.shading_bases`), else from the photos."""
+    from .footprint import observe_footprints, shading_bases
+
+    bases: list = []
 
     def footprints(size: int) -> PixelFootprints:
+        if model is not None and not bases:
+            bases.append([shading_bases(model, p) for p in views.get()])
+        shading = bases[0] if bases and all(b is not None for b in bases[0]) else None
         return observe_footprints(ds.mesh, [v.camera for v in ds.views], [v.lights for v in ds.views],
                                   [p.gbuffer for p in views.get()], [p.radiance for p in photos], (size, size),
                                   lights=lights, clipped=[p.unusable for p in photos], dtype=dtype,
-                                  psf_sigma=psf)
+                                  psf_sigma=psf, shading=shading)
 
     return footprints
 
 
 def _observe(data: _Loaded, views: _PreparedViews, solver: str, sampling: str | None, texture_size: int | None,
              footprint: bool, psf_sigma: float | None, dtype: torch.dtype, options: Mapping[str, object],
-             prog: Progress) -> _Observed:
+             prog: Progress, model: Model | None = None) -> _Observed:
     """The valid samples of every view (:func:`capture.observations.observe_views`) and, for the fast solver's
-    bilinear fit, the photos' pixel footprints; both split into fitted and held-out views."""
+    bilinear fit, the photos' pixel footprints (their ray counts from ``model``'s shading where
+    :func:`_footprint_observer` can); both split into fitted and held-out views."""
     ds = data.ds
     prog.start("observe")
     photos = ds.load_images(dtype=dtype)
@@ -845,7 +856,7 @@ def _observe(data: _Loaded, views: _PreparedViews, solver: str, sampling: str | 
     except ValueError as exc:
         raise ReconstructionError(f"{exc}; or None for the dataset's") from None
     if footprint and solver == "fast" and sampling == "bilinear":
-        footprints = _footprint_observer(ds, views, photos, all_lights, dtype, psf)
+        footprints = _footprint_observer(ds, views, photos, all_lights, dtype, psf, model)
         prog.start("footprints")
         fp_all = footprints(texture_size)
         fp = fp_all.select_views(data.fit_views) if data.held_views else fp_all
@@ -885,7 +896,7 @@ def _report_samples(report: Report, data: _Loaded, seen: _Observed, footprint: b
                                           strict=True)),
             "rays_cast": fp_all.cast_rays, "rays_saved_vs_uniform": saving(fp_all),
             "texture_samples": fp_all.texture_samples, "drops": fp_all.drops,
-            "psf_sigma": float(psf), "noisy_views": fp_all.noisy_views}
+            "psf_sigma": float(psf), "noisy_views": fp_all.noisy_views, "ray_counts": fp_all.ray_counts}
     if data.held_views:
         report.samples.update(heldout_views=data.held_views, heldout_samples=seen.held_obs.n_samples,
                               fitted_samples=seen.obs.n_samples)
@@ -1593,7 +1604,9 @@ def _summary(r: Report) -> str:
                      f"{fps.get('texture_samples', 0)} texture sub-samples; fit χ² per residual "
                      f"{r.fit.get('chi2_per_residual', float('nan')):.3g}"
                      + (f"; in {fps['noisy_views']} of {r.samples.get('views')} views the photo's noise (σ² = a·I + b, "
-                        f"measured) is not taken for shading curvature" if fps.get("noisy_views") else ""))
+                        f"measured) is not taken for shading curvature" if fps.get("noisy_views") else "")
+                     + ("; ray counts from the model's shading (affine in its parameters), not the photos'"
+                        if fps.get("ray_counts") == "model" else ""))
     saved = r.skipped.get("time_saved_estimate_s", {})
     skips = [f"parameters not allocated: {', '.join(r.skipped['parameters_not_allocated']) or 'none'}"] \
         if "parameters_not_allocated" in r.skipped else []

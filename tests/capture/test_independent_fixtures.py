@@ -186,7 +186,8 @@ def test_the_true_maps_chi2_tells_a_solver_stopped_short_from_a_pixel_model_or_a
     """The GGX sphere's truth through the fit's own image formation: χ² 0.36 through the pixel footprints. Measured:
     with no footprint steps the fit reads 14.5 (41×): the summary warns that the solver stopped short; fitting the
     pixel centres the truth itself reads 81.6 and the fit 55.8: no such warning, the floor says the pixel model is
-    what fails; a Lambert fit reads 6.8e4: the warning names the model."""
+    what fails; a Lambert fit reads 6.8e4 (the truth 1.2 through its footprints, whose rays follow Lambert's shading
+    and not the highlights): the warning names the model."""
     from capture.reconstruct import reconstruct
 
     path = mitsuba_scene("sphere-ggx-lambert")
@@ -203,7 +204,9 @@ def test_the_true_maps_chi2_tells_a_solver_stopped_short_from_a_pixel_model_or_a
     centres, warned = fit(ggx, "centres", footprint=False)
     assert centres.errors["chi2_at_truth"] > 30 and not warned
     lambert, warned = fit("lambert", "lambert")
-    assert lambert.errors["chi2_at_truth"] == pytest.approx(short.errors["chi2_at_truth"], rel=1e-9)
+    # (a Lambert fit's rays follow Lambert's shading, not the highlights: the truth reads 1.2 through them)
+    assert lambert.samples["footprints"]["ray_counts"] == "model"
+    assert lambert.errors["chi2_at_truth"] < 1e-3 * lambert.fit["chi2_per_residual"]
     assert len(warned) == 1 and "fitted model (lambert) explains less than the true one" in warned[0]
 
 
