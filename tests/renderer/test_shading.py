@@ -204,3 +204,26 @@ def test_radiance_jacobian_is_the_automatic_derivative_of_radiance_sum():
     local, _, angles, irradiance = lights[0]
     with pytest.raises(ShadingError, match="local == index"):
         radiance_jacobian(model, params, S, [(local, (local + 1) % S, angles, irradiance)])
+
+
+def test_a_model_without_parameters_sums_its_radiance_in_the_irradiance_type():
+    """A measured BRDF fits no parameter: the radiance sum and its Jacobian take their dtype and device from the
+    irradiance (they read them off the first parameter, and raised on none): the sum is E · f(l, v) cos θ_l pair by
+    pair, in float64 when E is."""
+    from materials.geometry import Angles
+    from renderer.shading import radiance_jacobian, radiance_sum
+
+    m = materials.get("measured")
+    assert m.params == ()
+    n = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(4, 3)
+    l = torch.nn.functional.normalize(torch.tensor([[0.2, 0.0, 1.0], [0.5, 0.1, 1.0], [0.0, 0.7, 1.0],
+                                                    [0.9, 0.0, 0.4]], dtype=torch.float64), dim=-1)
+    ang = Angles.from_vectors(n, l, n)
+    idx = torch.arange(4)
+    E = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64).expand(4, 3)
+    out = radiance_sum(m, {}, 6, [(idx, idx, ang, E)])
+    assert out.dtype == torch.float64 and out.shape == (6, 3)
+    assert torch.allclose(out[:4], E * m.cosine_brdf(ang, {})) and bool((out[4:] == 0).all())
+    assert bool((out[:4] > 0).all())
+    jac = radiance_jacobian(m, {}, 6, [(idx, idx, ang, E)])
+    assert jac is None or (torch.allclose(jac[0], out) and jac[1] == {})
