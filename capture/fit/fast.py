@@ -158,6 +158,20 @@ class _Plan(NamedTuple):
     grid: int
 
 
+def _closed_form_is_exact(layout: Layout, sep: Mapping[str, bool], opts: FitOptions) -> bool:
+    """Whether the closed-form solve (:func:`capture.fit.texel.linear_solve`) is already the minimiser of the
+    per-texel LM's objective, whose iterations then cannot change the fit: one linear parameter (Lambert's albedo),
+    solved channel by channel (or a scalar) — each texel's weighted least squares in one unknown, clipped into its
+    range, which for one unknown is the bounded minimum (but for the 1e-4 of the range a clipped value is kept
+    inside it, and the tiny ridge toward the default that decides texels with almost no data) — under the l2 loss
+    and no neighbour prior. Measured on the 256² Mitsuba torus: the LM's five iterations (its floor on photos read
+    bilinearly, :data:`BILINEAR_LM_MIN`) moved the cost by 7e-8 of itself in 0.36 s."""
+    if not (layout.affine and len(layout.specs) == 1 and opts.loss == "l2" and not opts.smoothness):
+        return False
+    spec = layout.specs[0]
+    return spec.channels == 1 or bool(sep.get(spec.name))
+
+
 def _plan(opts: FitOptions) -> _Plan:
     """Resolve the per-texel LM's iterations and stopping rule, whether the joint refinement and the sharing run,
     and the closed-form grid."""
@@ -499,8 +513,9 @@ def solve_fast(model: Model, obs: Observations, options: FitOptions | None = Non
                                     fixed=tuple(init or ()))
     info["grid_s"] = time.perf_counter() - t_grid
     info["options"] = opts.to_dict()
+    iterations = 0 if opts.iterations is None and _closed_form_is_exact(layout, sep, opts) else plan.iterations
     theta, history, lm_info = per_texel_lm(model, obs, layout, theta, groups, loss=opts.loss, delta=delta,
-                                           iterations=plan.iterations, schedule=opts.schedule,
+                                           iterations=iterations, schedule=opts.schedule,
                                            smoothness=opts.smoothness, reproject=opts.reproject, sep=sep,
                                            lm_tol=plan.lm_tol, min_iterations=plan.min_iterations, progress=progress)
     info.update(lm_info)
