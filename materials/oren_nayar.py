@@ -56,6 +56,7 @@ OCR readings chosen (each checked; see ``docs/models-diffuse.md`` and the tests)
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 
 import torch
@@ -65,7 +66,12 @@ from .environment import Environment, SHLight
 from .geometry import Angles, as_param, check_angles
 from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
-from .roughness import roughness_to_shininess, roughness_to_sigma
+from .roughness import (
+    roughness_to_shininess,
+    roughness_to_shininess_derivative,
+    roughness_to_sigma,
+    roughness_to_sigma_derivative,
+)
 
 INV_PI = 1.0 / math.pi
 #: Floor of max(n·l, n·v) in the 1/max(n·l, n·v) factor of f_r (not used by ``cosine=True``).
@@ -116,6 +122,21 @@ def _ab_shininess(s: Tensor, a_const: float = 0.33) -> tuple[Tensor, Tensor]:
     """A = 1 − 1/(2 + a_const·s), B = 1/(2.22222 + 0.1 s) (Gotanda 2012 eq 23, 24)."""
     s = s.clamp_min(0.0)
     return 1.0 - 1.0 / (2.0 + a_const * s), 1.0 / (20.0 / 9.0 + 0.1 * s)
+
+
+def _ab_sigma_derivative(sigma: Tensor, a_const: float = 0.33) -> tuple[Tensor, Tensor]:
+    """``(∂A/∂σ, ∂B/∂σ)`` of :func:`_ab_sigma`: ``−σ a_const/(σ² + a_const)²`` and ``0.081 σ/(σ² + 0.09)²``."""
+    s2 = sigma.square()
+    return -sigma * a_const / (s2 + a_const).square(), 0.081 * sigma / (s2 + 0.09).square()
+
+
+def _ab_shininess_derivative(s: Tensor, a_const: float = 0.33) -> tuple[Tensor, Tensor]:
+    """``(∂A/∂s, ∂B/∂s)`` of :func:`_ab_shininess`: ``a_const/(2 + a_const s)²`` and ``−0.1/(2.22222 + 0.1 s)²``
+    (0 below s = 0, where its clamp holds)."""
+    keep = s >= 0.0
+    s = s.clamp_min(0.0)
+    da, db = a_const / (2.0 + a_const * s).square(), -0.1 / (20.0 / 9.0 + 0.1 * s).square()
+    return torch.where(keep, da, torch.zeros_like(da)), torch.where(keep, db, torch.zeros_like(db))
 
 
 def _safe_acos(c: Tensor) -> Tensor:
@@ -225,6 +246,12 @@ def oren_nayar_qualitative(g: Angles, albedo: Tensor, sigma: Tensor, cosine: boo
     albedo = _t(albedo, g.nl, "albedo", fn)
     sigma = _t(sigma, g.nl, "sigma", fn).clamp_min(0.0)
     a, b = _ab_sigma(sigma)
+    return _finish(g, albedo * INV_PI * _qualitative_bracket(g, a, b, cosine), albedo)
+
+
+def _qualitative_bracket(g: Angles, a: Tensor, b: Tensor, cosine: bool) -> Tensor:
+    """Eq 10/11's bracket ``A + B max(0, cos(φ_r − φ_i)) sin α tan β`` (times n·l with ``cosine``), linear in
+    ``(a, b)``: the same function of ``(∂A, ∂B)`` is its derivative."""
     nl = g.nl.clamp(0.0, 1.0)
     nv = g.nv.clamp(0.0, 1.0)
     sin_prod_sq = ((1.0 - nl.square()) * (1.0 - nv.square())).clamp_min(0.0)
@@ -233,8 +260,7 @@ def oren_nayar_qualitative(g: Angles, albedo: Tensor, sigma: Tensor, cosine: boo
     cos_phi = torch.where(ok, (_cosri(g) / sin_prod).clamp(-1.0, 1.0), torch.zeros_like(sin_prod))
     sin_prod = torch.where(ok, sin_prod, torch.zeros_like(sin_prod))
     sin_a_tan_b = sin_prod * _inv_max(g, cosine)
-    out = albedo * INV_PI * (a * _weight(g, cosine) + b * cos_phi.clamp_min(0.0) * sin_a_tan_b)
-    return _finish(g, out, albedo)
+    return a * _weight(g, cosine) + b * cos_phi.clamp_min(0.0) * sin_a_tan_b
 
 
 # -- Gotanda 2012 -------------------------------------------------------------------------------
@@ -261,8 +287,12 @@ def gotanda_on_simplified(g: Angles, albedo: Tensor, sigma: Tensor | None = None
         a, b = _ab_sigma(_t(sigma, g.nl, "sigma", fn).clamp_min(0.0))
     else:
         a, b = _ab_shininess(_t(shininess, g.nl, "shininess", fn))
-    out = albedo * INV_PI * (a * _weight(g, cosine) + b * _cosri(g).clamp_min(0.0) * _inv_max(g, cosine))
-    return _finish(g, out, albedo)
+    return _finish(g, albedo * INV_PI * _simplified_bracket(g, a, b, cosine), albedo)
+
+
+def _simplified_bracket(g: Angles, a: Tensor, b: Tensor, cosine: bool) -> Tensor:
+    """Eq 20/23's bracket ``A + B max(0, cosri)/max(N·L, N·E)`` (times n·l with ``cosine``), linear in ``(a, b)``."""
+    return a * _weight(g, cosine) + b * _cosri(g).clamp_min(0.0) * _inv_max(g, cosine)
 
 
 def _improved_bracket(g: Angles, a: Tensor, b: Tensor, form: str, cosine: bool) -> Tensor:
@@ -369,12 +399,17 @@ def gotanda2014_on_fresnel(g: Angles, albedo: Tensor, sigma: Tensor, f0: Tensor,
     albedo = _t(albedo, g.nl, "albedo", fn)
     f0 = _t(f0, g.nl, "f0", fn)
     a, b = _ab_sigma(_t(sigma, g.nl, "sigma", fn).clamp_min(0.0), a_const=0.65)
-    fd = diffuse_fresnel(g.nl, g.nv, f0)
-    view = _improved_bracket(g, torch.zeros_like(a), b, "eq25", cosine)
-    bracket = fd * a * _weight(g, cosine) + view
+    bracket = _fresnel_bracket(g, a, b, diffuse_fresnel(g.nl, g.nv, f0), cosine)
     if clamp:
         bracket = bracket.clamp_min(0.0)
     return _finish(g, albedo * INV_PI * (1.0 - f0) * bracket, albedo)
+
+
+def _fresnel_bracket(g: Angles, a: Tensor, b: Tensor, fd: Tensor, cosine: bool) -> Tensor:
+    """Eq 7's bracket ``F_diff A (n·l) + B cosri min(1, n·l/n·e)`` (eq 5's case split; times n·l with ``cosine``):
+    linear in ``(a, b)``, and in ``fd`` where ``b`` is 0."""
+    view = _improved_bracket(g, torch.zeros_like(a), b, "eq25", cosine)
+    return fd * a * _weight(g, cosine) + view
 
 
 # -- spherical-harmonics lighting (Gotanda 2012 eq 26-29) ----------------------------------------
@@ -440,6 +475,35 @@ def _sh_environment(model: Model, env: Environment, n: Tensor, v: Tensor, albedo
 _ALBEDO_NONLINEAR = replace(ALBEDO, linear=False)
 
 
+def _bracket_jacobian(g: Angles, p, bracket: Callable[[Tensor, Tensor], Tensor], in_sigma: bool, a_const: float,
+                      clamp: bool) -> tuple[Tensor, dict[str, Tensor]]:
+    """``cosine_brdf`` and its derivatives in closed form for a lobe ``ρ/π · [A·X + B·Y]`` (n·l included), the
+    bracket ``bracket(a, b)`` linear in the Oren-Nayar coefficients — so that ``bracket(∂A/∂r, ∂B/∂r)`` is its
+    derivative — with A, B of σ (``in_sigma``, :func:`_ab_sigma`) or of the shininess (:func:`_ab_shininess`), σ or
+    s from the roughness with their clamps' zero derivatives, and ``clamp``: max(bracket, 0), whose derivative is 0
+    where the bracket is negative. The value is computed as the lobe computes it; each albedo channel acts on its
+    own colour channel (a diagonal derivative)."""
+    albedo, r = p["albedo"], p["roughness"]
+    if in_sigma:
+        x, dx = roughness_to_sigma_derivative(r)
+        x = x.clamp_min(0.0)
+        a, b = _ab_sigma(x, a_const)
+        da, db = _ab_sigma_derivative(x, a_const)
+    else:
+        x, dx = roughness_to_shininess_derivative(r)
+        a, b = _ab_shininess(x, a_const)
+        da, db = _ab_shininess_derivative(x, a_const)
+    br = bracket(a, b)
+    dbr = bracket(da * dx, db * dx)
+    if clamp:
+        dbr = torch.where(br >= 0.0, dbr, torch.zeros_like(dbr))
+        br = br.clamp_min(0.0)
+    value = _finish(g, albedo * INV_PI * br, albedo)
+    d_albedo = torch.where(g.front, INV_PI * br, torch.zeros_like(br)).expand_as(value)
+    d_r = torch.where(g.front, albedo * INV_PI * dbr, torch.zeros_like(value))
+    return value, {"albedo": d_albedo, "roughness": d_r[..., None]}
+
+
 def _check_choice(model: str, option: str, value, valid) -> None:
     if value not in valid:
         raise ValueError(f"model '{model}': unknown {option}={value!r}; valid values are {list(valid)}")
@@ -488,6 +552,12 @@ class OrenNayarQualitative(Model):
     def cosine_brdf(self, g, p):
         return oren_nayar_qualitative(g, p["albedo"], roughness_to_sigma(p["roughness"]), cosine=True)
 
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """In closed form (:func:`_bracket_jacobian`): eq 10/11's bracket is linear in A and B."""
+        if not self.shades_as(OrenNayarQualitative):
+            return None
+        return _bracket_jacobian(g, p, lambda a, b: _qualitative_bracket(g, a, b, True), True, 0.33, False)
+
 
 @register("gotanda-on-simplified", "Gotanda 2012 simplified Oren-Nayar: eq 20 (form='sigma') or eq 23 ('shininess')")
 class GotandaONSimplified(Model):
@@ -509,6 +579,13 @@ class GotandaONSimplified(Model):
         if self.form == "sigma":
             return gotanda_on_simplified(g, p["albedo"], sigma=roughness_to_sigma(r), cosine=cosine)
         return gotanda_on_simplified(g, p["albedo"], shininess=roughness_to_shininess(r), cosine=cosine)
+
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """In closed form (:func:`_bracket_jacobian`): eq 20/23's bracket is linear in A and B."""
+        if not self.shades_as(GotandaONSimplified):
+            return None
+        return _bracket_jacobian(g, p, lambda a, b: _simplified_bracket(g, a, b, True), self.form == "sigma", 0.33,
+                                 False)
 
     def brdf(self, g, p):
         return self._eval(g, p, False)
@@ -551,6 +628,13 @@ class GotandaONImproved(_SHMixin, Model):
         return gotanda_on_improved(g, p["albedo"], roughness_to_shininess(p["roughness"]), self.form, cosine=True,
                                    clamp=self.clamp)
 
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """In closed form (:func:`_bracket_jacobian`): eq 24/25's bracket is linear in A and B."""
+        if not self.shades_as(GotandaONImproved):
+            return None
+        return _bracket_jacobian(g, p, lambda a, b: _improved_bracket(g, a, b, self.form, True), False, 0.65,
+                                 self.clamp)
+
 
 @register("gotanda2014-on", "Gotanda 2014 eq 5: improved Oren-Nayar in σ (0.65 constant), SH lighting eq 27-29")
 class Gotanda2014ON(_SHMixin, Model):
@@ -570,6 +654,12 @@ class Gotanda2014ON(_SHMixin, Model):
 
     def cosine_brdf(self, g, p):
         return gotanda2014_on(g, p["albedo"], roughness_to_sigma(p["roughness"]), cosine=True)
+
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """In closed form (:func:`_bracket_jacobian`): eq 5's bracket (2012 eq 25 in σ) is linear in A and B."""
+        if not self.shades_as(Gotanda2014ON):
+            return None
+        return _bracket_jacobian(g, p, lambda a, b: _improved_bracket(g, a, b, "eq25", True), True, 0.65, False)
 
 
 @register("gotanda2014-on-fresnel", "Gotanda 2014 eq 7: improved Oren-Nayar with diffuse Fresnel (eq 6)")
@@ -592,3 +682,35 @@ class Gotanda2014ONFresnel(Model):
     def cosine_brdf(self, g, p):
         return gotanda2014_on_fresnel(g, p["albedo"], roughness_to_sigma(p["roughness"]), p["f0"], cosine=True,
                                       clamp=self.clamp)
+
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """In closed form: ``ρ/π (1 − f0) [F_diff(f0) A (n·l) + B ·]``, the bracket linear in A and B and in F_diff,
+        whose derivative in f0 is ``−1.05 (1 − (1 − n·l)⁵)(1 − (1 − n·e)⁵)``; albedo and f0 act per channel
+        (diagonal derivatives)."""
+        if not self.shades_as(Gotanda2014ONFresnel):
+            return None
+        albedo, f0 = p["albedo"], p["f0"]
+        sigma, dsigma = roughness_to_sigma_derivative(p["roughness"])
+        sigma = sigma.clamp_min(0.0)
+        a, b = _ab_sigma(sigma, 0.65)
+        da, db = _ab_sigma_derivative(sigma, 0.65)
+        fd = diffuse_fresnel(g.nl, g.nv, f0)
+        br = _fresnel_bracket(g, a, b, fd, True)
+        d_r = _fresnel_bracket(g, da * dsigma, db * dsigma, fd, True)
+        d_f0 = _fresnel_bracket(g, a, torch.zeros_like(b), diffuse_fresnel(g.nl, g.nv, torch.full_like(f0, 2.0)),
+                                True)                       # F_diff at f0 = 2 is −1.05 (…)(…): ∂F_diff/∂f0
+        if self.clamp:
+            live = br >= 0.0
+            d_r = torch.where(live, d_r, torch.zeros_like(d_r))
+            d_f0 = torch.where(live, d_f0, torch.zeros_like(d_f0))
+            br = br.clamp_min(0.0)
+        one_minus = 1.0 - f0
+        value = _finish(g, albedo * INV_PI * one_minus * br, albedo)
+        scale = albedo * INV_PI
+
+        def front(x: Tensor) -> Tensor:
+            return torch.where(g.front, x, torch.zeros_like(x))
+
+        return value, {"albedo": front(INV_PI * one_minus * br).expand_as(value),
+                       "f0": front(scale * (one_minus * d_f0 - br)),
+                       "roughness": front(scale * one_minus * d_r)[..., None]}

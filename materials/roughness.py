@@ -110,6 +110,17 @@ def roughness_to_sigma(r: Tensor) -> Tensor:
     return shininess_to_sigma(roughness_to_shininess(r))
 
 
+def roughness_to_sigma_derivative(r: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`roughness_to_sigma` and its derivative ``∂σ/∂r = −σ/(2s) · ∂s/∂r`` (σ = √(2/s)), 0 where a clamp holds
+    (r outside [R_MIN, 1], s outside [2, S_MAX]: σ = 1 for r ≥ (1/2)^(1/4)) — for the models' closed-form
+    Jacobians."""
+    s, ds = roughness_to_shininess_derivative(r)
+    sc = s.clamp(2.0, S_MAX)
+    sigma = torch.sqrt(2.0 / sc)
+    keep = (s >= 2.0) & (s <= S_MAX)
+    return sigma, torch.where(keep, -0.5 * sigma / sc * ds, torch.zeros_like(ds))
+
+
 def sigma_to_roughness(sigma: Tensor) -> Tensor:
     """Oren-Nayar σ → perceptual r (inverse of :func:`roughness_to_sigma` on σ < 1)."""
     return shininess_to_roughness(sigma_to_shininess(sigma))

@@ -71,6 +71,19 @@ CLOSED.update({
     "gotanda2010-specular, exact normalisation, Schüler's Fresnel": lambda: materials.get(
         "gotanda2010-specular", normalization="exact", fresnel="schuler"),
 })
+# the Oren-Nayar lobes linear in A and B (every form and clamp option)
+CLOSED.update({
+    "oren-nayar-qualitative": lambda: materials.get("oren-nayar-qualitative"),
+    "gotanda-on-simplified, sigma": lambda: materials.get("gotanda-on-simplified"),
+    "gotanda-on-simplified, shininess": lambda: materials.get("gotanda-on-simplified", form="shininess"),
+    "gotanda-on-improved, eq25": lambda: materials.get("gotanda-on-improved"),
+    "gotanda-on-improved, eq24": lambda: materials.get("gotanda-on-improved", form="eq24"),
+    "gotanda-on-improved, eq24 unclamped": lambda: materials.get("gotanda-on-improved", form="eq24", clamp=False),
+    "gotanda2014-on": lambda: materials.get("gotanda2014-on"),
+    "gotanda2014-on, roughness known": lambda: KnownParams(materials.get("gotanda2014-on"), {"roughness": 0.6}),
+    "gotanda2014-on-fresnel": lambda: materials.get("gotanda2014-on-fresnel"),
+    "gotanda2014-on-fresnel unclamped": lambda: materials.get("gotanda2014-on-fresnel", clamp=False),
+})
 # every D, G and Beckmann Λ form (GGX has one Λ), and every named F
 CLOSED.update({f"microfacet D={d} G={g} {lam}": (lambda d=d, g=g, lam=lam: Microfacet(D=d, G=g, beckmann_lambda=lam))
                for d in DISTRIBUTIONS for g in GEOMETRIES for lam in BECKMANN_LAMBDAS
