@@ -73,6 +73,23 @@ class Gotanda2012(Model):
         diffuse = gotanda_on_improved(g, p["albedo"] * (1.0 - p["f0"]), s, form="eq25", cosine=True)
         return diffuse + gotanda_blinn_phong_cosine(g, p["f0"], s)
 
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """The closed forms of its two lobes — the improved Oren-Nayar at ρ (1 − F0)
+        (:class:`~materials.oren_nayar.GotandaONImproved`) and the Blinn-Phong lobe
+        (:class:`~materials.blinn_phong.GotandaBlinnPhong`) — summed, F0 acting on both: ``−ρ`` times the diffuse
+        lobe's albedo derivative on the first. Each albedo and f0 channel acts on its own colour channel."""
+        from .blinn_phong import GotandaBlinnPhong
+        from .oren_nayar import GotandaONImproved
+
+        if not self.shades_as(Gotanda2012):
+            return None
+        albedo, f0, r = p["albedo"], p["f0"], p["roughness"]
+        diffuse, dd = GotandaONImproved(form="eq25").cosine_brdf_jacobian(g, {"albedo": albedo * (1.0 - f0),
+                                                                              "roughness": r})
+        spec, ds = GotandaBlinnPhong().cosine_brdf_jacobian(g, {"f0": f0, "roughness": r})
+        return diffuse + spec, {"albedo": (1.0 - f0) * dd["albedo"], "f0": ds["f0"] - albedo * dd["albedo"],
+                                "roughness": dd["roughness"] + ds["roughness"]}
+
     def environment(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         """Diffuse part only, through the improved Oren-Nayar SH scaling (2012 eq 27-29)."""
         from .oren_nayar import GotandaONImproved

@@ -196,36 +196,72 @@ def oren_nayar_full(g: Angles, albedo: Tensor, sigma: Tensor, interreflection: b
     _check_angles(g, fn)
     albedo = _t(albedo, g.nl, "albedo", fn)
     sigma = _t(sigma, g.nl, "sigma", fn).clamp_min(0.0)
-    nl = g.nl.clamp(0.0, 1.0)
-    nv = g.nv.clamp(0.0, 1.0)
-    cmax, cmin = torch.maximum(nl, nv), torch.minimum(nl, nv)
-    alpha, beta = _safe_acos(cmin), _safe_acos(cmax)
-    sin_a, sin_b = torch.sin(alpha), torch.sin(beta)
-    # cos(φ_r − φ_i) = cosri / (sin θ_i sin θ_r); where undefined (a direction along n) every term it
-    # multiplies vanishes, so any value in [-1, 1] will do — 0 (double-where keeps the gradient finite).
-    den = sin_a * sin_b
-    ok = den > 1e-12
-    cos_phi = torch.where(ok, _cosri(g) / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(den))
-    cos_phi = cos_phi.clamp(-1.0, 1.0)
-    s2 = sigma.square()
-    c1 = 1.0 - 0.5 * s2 / (s2 + 0.33)
-    b = 0.45 * s2 / (s2 + 0.09)
-    two_beta_pi = 2.0 * beta / math.pi
-    c2 = torch.where(cos_phi >= 0, b * sin_a, b * (sin_a - two_beta_pi.pow(3)))
-    c3 = 0.125 * s2 / (s2 + 0.09) * (4.0 * alpha * beta / math.pi**2).square()
-    # tan β and tan((α+β)/2), each times the weight (1 or n·l) so that the cosine form stays bounded.
-    w = _weight(g, cosine)
-    tan_b = sin_b * _inv_max(g, cosine)  # sin β / cos β  (· n·l)
-    half_den = (nl + nv).clamp_min(RATIO_FLOOR if cosine else MAX_COS_FLOOR)
-    tan_half = (sin_a + sin_b) * w / half_den  # tan((α+β)/2) (· n·l)
-    direct = c1 * w + cos_phi * c2 * tan_b + (1.0 - cos_phi.abs()) * c3 * tan_half
-    out = albedo * INV_PI * direct
+    geo = _FullGeometry.of(g, cosine)
+    c1, b, k3, ki = _full_coefficients(sigma)
+    out = albedo * INV_PI * geo.direct(c1, b, k3)
     if interreflection:
-        inter = 0.17 * s2 / (s2 + 0.13) * (1.0 - cos_phi * two_beta_pi.square()) * w
-        out = out + albedo.square() * INV_PI * inter
+        out = out + albedo.square() * INV_PI * geo.inter(ki)
     if clamp:
         out = out.clamp_min(0.0)
     return _finish(g, out, albedo)
+
+
+def _full_coefficients(sigma: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The σ-dependent factors of :func:`oren_nayar_full`: C1, C2's ``0.45 σ²/(σ² + 0.09)``, C3's ``0.125 σ²/(σ² +
+    0.09)`` and the interreflection's ``0.17 σ²/(σ² + 0.13)``."""
+    s2 = sigma.square()
+    return 1.0 - 0.5 * s2 / (s2 + 0.33), 0.45 * s2 / (s2 + 0.09), 0.125 * s2 / (s2 + 0.09), 0.17 * s2 / (s2 + 0.13)
+
+
+def _full_coefficients_derivative(sigma: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``∂/∂σ`` of :func:`_full_coefficients`: ``−0.33 σ/(σ² + 0.33)²``, ``0.081 σ/(σ² + 0.09)²``,
+    ``0.0225 σ/(σ² + 0.09)²``, ``0.0442 σ/(σ² + 0.13)²``."""
+    s2 = sigma.square()
+    d09 = (s2 + 0.09).square()
+    return (-0.33 * sigma / (s2 + 0.33).square(), 0.081 * sigma / d09, 0.0225 * sigma / d09,
+            0.0442 * sigma / (s2 + 0.13).square())
+
+
+class _FullGeometry:
+    """The angle terms of :func:`oren_nayar_full` (α, β, the azimuth cosine, tan β and tan((α + β)/2), each tangent
+    times the weight 1 or n·l), made once: its direct term is linear in (C1, B, C3's factor) and its
+    interreflection term in its own factor, so the same terms of the factors' derivatives are the derivatives."""
+
+    def __init__(self, w, cos_phi, sin_a, two_beta_pi, ab2, tan_b, tan_half):
+        self.w, self.cos_phi, self.sin_a, self.two_beta_pi = w, cos_phi, sin_a, two_beta_pi
+        self.ab2, self.tan_b, self.tan_half = ab2, tan_b, tan_half
+
+    @classmethod
+    def of(cls, g: Angles, cosine: bool) -> _FullGeometry:
+        nl = g.nl.clamp(0.0, 1.0)
+        nv = g.nv.clamp(0.0, 1.0)
+        cmax, cmin = torch.maximum(nl, nv), torch.minimum(nl, nv)
+        alpha, beta = _safe_acos(cmin), _safe_acos(cmax)
+        sin_a, sin_b = torch.sin(alpha), torch.sin(beta)
+        # cos(φ_r − φ_i) = cosri / (sin θ_i sin θ_r); where undefined (a direction along n) every term it
+        # multiplies vanishes, so any value in [-1, 1] will do — 0 (double-where keeps the gradient finite).
+        den = sin_a * sin_b
+        ok = den > 1e-12
+        cos_phi = torch.where(ok, _cosri(g) / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(den))
+        cos_phi = cos_phi.clamp(-1.0, 1.0)
+        two_beta_pi = 2.0 * beta / math.pi
+        ab2 = (4.0 * alpha * beta / math.pi**2).square()
+        # tan β and tan((α+β)/2), each times the weight (1 or n·l) so that the cosine form stays bounded.
+        w = _weight(g, cosine)
+        tan_b = sin_b * _inv_max(g, cosine)  # sin β / cos β  (· n·l)
+        half_den = (nl + nv).clamp_min(RATIO_FLOOR if cosine else MAX_COS_FLOOR)
+        tan_half = (sin_a + sin_b) * w / half_den  # tan((α+β)/2) (· n·l)
+        return cls(w, cos_phi, sin_a, two_beta_pi, ab2, tan_b, tan_half)
+
+    def direct(self, c1: Tensor, b: Tensor, k3: Tensor) -> Tensor:
+        """L_r¹'s bracket ``C1 + cos(φ_r − φ_i) C2 tan β + (1 − |cos(φ_r − φ_i)|) C3 tan((α + β)/2)``."""
+        c2 = torch.where(self.cos_phi >= 0, b * self.sin_a, b * (self.sin_a - self.two_beta_pi.pow(3)))
+        c3 = k3 * self.ab2
+        return c1 * self.w + self.cos_phi * c2 * self.tan_b + (1.0 - self.cos_phi.abs()) * c3 * self.tan_half
+
+    def inter(self, ki: Tensor) -> Tensor:
+        """L_r²'s bracket without ρ²: ``0.17 σ²/(σ² + 0.13) [1 − cos(φ_r − φ_i) (2β/π)²]``."""
+        return ki * (1.0 - self.cos_phi * self.two_beta_pi.square()) * self.w
 
 
 def oren_nayar_qualitative(g: Angles, albedo: Tensor, sigma: Tensor, cosine: bool = False) -> Tensor:
@@ -532,6 +568,41 @@ class OrenNayar(Model):
     def _eval(self, g, p, cosine):
         return oren_nayar_full(g, p["albedo"], roughness_to_sigma(p["roughness"]), self.interreflection, cosine,
                                self.clamp)
+
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """In closed form: ``ρ/π D(C1, B, C3) + ρ²/π I(K)``, the direct bracket D linear in its σ-dependent factors
+        and the interreflection I in its own (:class:`_FullGeometry`), so their derivatives in r are the same
+        brackets of the factors' derivatives; ∂/∂ρ = (D + 2ρ I)/π per channel (diagonal). The clamp max(·, 0) of
+        the total gives 0 where it holds."""
+        if not self.shades_as(OrenNayar):
+            return None
+        albedo = p["albedo"]
+        sigma, dsigma = roughness_to_sigma_derivative(p["roughness"])
+        sigma = sigma.clamp_min(0.0)
+        geo = _FullGeometry.of(g, True)
+        c1, b, k3, ki = _full_coefficients(sigma)
+        dc1, db, dk3, dki = (d * dsigma for d in _full_coefficients_derivative(sigma))
+        direct = geo.direct(c1, b, k3)
+        out = albedo * INV_PI * direct
+        d_albedo = INV_PI * direct
+        d_r = albedo * INV_PI * geo.direct(dc1, db, dk3)
+        if self.interreflection:
+            inter = geo.inter(ki)
+            out = out + albedo.square() * INV_PI * inter
+            d_albedo = d_albedo + 2.0 * albedo * INV_PI * inter
+            d_r = d_r + albedo.square() * INV_PI * geo.inter(dki)
+        if self.clamp:
+            live = out >= 0.0
+            d_albedo = torch.where(live, d_albedo, torch.zeros_like(d_albedo))
+            d_r = torch.where(live, d_r, torch.zeros_like(d_r))
+            out = out.clamp_min(0.0)
+        value = _finish(g, out, albedo)
+
+        def front(x: Tensor) -> Tensor:
+            x = torch.broadcast_tensors(x, value)[0]
+            return torch.where(g.front, x, torch.zeros_like(x))
+
+        return value, {"albedo": front(d_albedo), "roughness": front(d_r)[..., None]}
 
     def brdf(self, g, p):
         return self._eval(g, p, False)

@@ -82,6 +82,10 @@ CLOSED.update({
     "gotanda2014-on": lambda: materials.get("gotanda2014-on"),
     "gotanda2014-on, roughness known": lambda: KnownParams(materials.get("gotanda2014-on"), {"roughness": 0.6}),
     "gotanda2014-on-fresnel": lambda: materials.get("gotanda2014-on-fresnel"),
+    "oren-nayar": lambda: materials.get("oren-nayar"),
+    "gotanda2012": lambda: materials.get("gotanda2012"),
+    "oren-nayar, no interreflection": lambda: materials.get("oren-nayar", interreflection=False),
+    "oren-nayar, unclamped": lambda: materials.get("oren-nayar", clamp=False),
     "gotanda2014-on-fresnel unclamped": lambda: materials.get("gotanda2014-on-fresnel", clamp=False),
 })
 # every D, G and Beckmann Λ form (GGX has one Λ), and every named F
