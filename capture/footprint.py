@@ -20,9 +20,10 @@ one-ray-per-pixel renders.
      (``max(|I(x+1) + I(x−1) − 2 I(x)|, same in y) / I``), so ``k = ceil(sqrt(c / (24 · FOOTPRINT_TOLERANCE)))``.
      In a photo noisier than the fit's noise model the part of each difference its measured noise explains is left
      out (:func:`photo_noise`, :func:`_curvature`): noise is not curvature. The photo's differences also hold the
-     texture's, which the texture sub-samples below already resolve; for a model affine in its parameters
+     texture's, which texture sub-samples can integrate without rays: for a model affine in its parameters
      (Lambert) the shading alone is known before any fit — the model rendered at the pixel centres with each
-     parameter at 1 in turn (:func:`shading_bases`) — and its curvature replaces the photo's;
+     parameter at 1 in turn (:func:`shading_bases`) — and its curvature sets the rays, the photo's the texture
+     sub-samples (at least as many per axis as it would have asked rays);
    * **texture sub-samples**, for the maps: ``kt = ceil(f / FOOTPRINT_SPACING)``, so that neighbouring samples are
      at most :data:`FOOTPRINT_SPACING` texels apart, capped at :data:`FOOTPRINT_TEXTURE_MAX` (they cost no ray, only
      operator entries). A pixel much smaller than a texel needs one: the maps are
@@ -429,7 +430,9 @@ def footprint_counts(gbuffer, map_size: tuple[int, int], photo: Tensor | None = 
     sub-samples. ``noise``: the photo's noise std ``[H, W, 3]`` left out of its curvature (:func:`_curvature`), None
     for none, or ``"measure"`` (default) for :func:`photo_noise` of the photo at the G-buffer's object pixels.
     ``shading``: noise-free images ``[B, H, W, 3]`` of the view's shading (:func:`shading_bases`) whose largest
-    curvature is the shading's need instead of the photo's (``photo`` and ``noise`` are then not read)."""
+    curvature is the shading's need instead of the photo's; the photo's, when given too, then sets the texture's
+    (``kt`` at least its ray count: the texture's variation inside the pixel, a kink of the bilinear map at an
+    albedo edge, is integrated by texture sub-samples instead of rays)."""
     H, W = gbuffer.height, gbuffer.width
     uv = torch.zeros(H * W, 2, dtype=torch.float64)
     depth = torch.zeros(H * W, dtype=torch.float64)
@@ -441,19 +444,25 @@ def footprint_counts(gbuffer, map_size: tuple[int, int], photo: Tensor | None = 
     extent, kmax = footprint_extent(psf_sigma), footprint_max(psf_sigma)
     kt = torch.ceil(f * extent / FOOTPRINT_SPACING)
     k = torch.ones_like(kt)
+    k_photo = None
+    if photo is not None:
+        if isinstance(noise, str):
+            if noise != "measure":
+                raise ObservationError(f"footprint_counts: noise must be a tensor, None or 'measure', got {noise!r}")
+            noise = photo_noise(photo, hit2)
+        k_photo = torch.ceil(extent * torch.sqrt(_curvature(photo, noise) / (24.0 * FOOTPRINT_TOLERANCE)))
     if shading is not None:
         if shading.ndim != 4 or tuple(shading.shape[1:3]) != (H, W):
             raise ObservationError(f"footprint_counts: shading must be [B, {H}, {W}, 3] images of the view, got "
                                    f"{tuple(shading.shape)}")
         curvature = torch.stack([_curvature(img) for img in shading]).amax(0)
         k = torch.ceil(extent * torch.sqrt(curvature / (24.0 * FOOTPRINT_TOLERANCE)))
-    elif photo is not None:
-        if isinstance(noise, str):
-            if noise != "measure":
-                raise ObservationError(f"footprint_counts: noise must be a tensor, None or 'measure', got {noise!r}")
-            noise = photo_noise(photo, hit2)
-        curvature = _curvature(photo, noise)
-        k = torch.ceil(extent * torch.sqrt(curvature / (24.0 * FOOTPRINT_TOLERANCE)))
+        if k_photo is not None:
+            # what the photo's curvature holds beyond the shading's is the texture's variation inside the pixel:
+            # texture sub-samples integrate it (as the rays it asked for did), without rays
+            kt = torch.maximum(kt, k_photo.clamp(1, kmax))
+    elif k_photo is not None:
+        k = k_photo
     k = k.clamp(1, kmax).long()
     k = torch.where(edge, torch.full_like(k, kmax), k)
     kt = torch.maximum(kt.clamp(1, footprint_max(psf_sigma, FOOTPRINT_TEXTURE_MAX)).long(), k)
@@ -562,7 +571,7 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         psf_sigma: σ (pixels) of a Gaussian lens/demosaicing blur convolved with the box filter (0: box only;
             :func:`renderer.gbuffer.render_footprint`).
         shading: per view the model's shading images (:func:`shading_bases`), whose curvature then sets the ray
-            counts instead of the photos' (None: the photos').
+            counts instead of the photos' (None: the photos'), the photos' setting the texture sub-samples.
 
     Raises:
         ObservationError: mismatched lists or no valid pixel in any view.
@@ -582,12 +591,9 @@ def observe_footprints(mesh, cameras: Sequence, lights_per_view: Sequence, centr
         # one view's rays, texture footprints and shading terms, made into its kept samples at once: the prepared
         # rays of all views held until every view was made took twice the samples' memory more
         g0 = centre_gbuffers[vi]
-        if shading is not None:
-            sigma = None
-            pixels, k, kt, f = footprint_counts(g0, map_size, psf_sigma=psf_sigma, shading=shading[vi])
-        else:
-            sigma = photo_noise(photos[vi], _object_pixels(g0))
-            pixels, k, kt, f = footprint_counts(g0, map_size, photos[vi], psf_sigma, noise=sigma)
+        sigma = photo_noise(photos[vi], _object_pixels(g0))
+        pixels, k, kt, f = footprint_counts(g0, map_size, photos[vi], psf_sigma, noise=sigma,
+                                            shading=None if shading is None else shading[vi])
         g = render_footprint(mesh, cameras[vi], pixels, k, psf_sigma=psf_sigma)
         cast = int((k * k).sum())
         # a pixel is whole when all its rays hit the object facing the camera

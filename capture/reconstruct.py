@@ -1605,8 +1605,8 @@ def _summary(r: Report) -> str:
                      f"{r.fit.get('chi2_per_residual', float('nan')):.3g}"
                      + (f"; in {fps['noisy_views']} of {r.samples.get('views')} views the photo's noise (σ² = a·I + b, "
                         f"measured) is not taken for shading curvature" if fps.get("noisy_views") else "")
-                     + ("; ray counts from the model's shading (affine in its parameters), not the photos'"
-                        if fps.get("ray_counts") == "model" else ""))
+                     + ("; ray counts from the model's shading (affine in its parameters), the photos' curvature "
+                        "setting the texture sub-samples" if fps.get("ray_counts") == "model" else ""))
     saved = r.skipped.get("time_saved_estimate_s", {})
     skips = [f"parameters not allocated: {', '.join(r.skipped['parameters_not_allocated']) or 'none'}"] \
         if "parameters_not_allocated" in r.skipped else []
