@@ -68,7 +68,7 @@ from torch import Tensor
 from . import roughness as rough
 from .environment import Environment, HemisphereLight
 from .fresnel import fresnel_from_f0, fresnel_schuler
-from .geometry import Angles, guarded_pow, reflect
+from .geometry import Angles, guarded_pow, guarded_pow_log, reflect
 from .lambert import INV_PI, lambert
 from .microfacet import COS_EPS, microfacet_specular, visibility_term
 from .model import Model, register
@@ -265,6 +265,29 @@ class Schuler(Model):
     def brdf(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
         spec = schuler_specular(g, p["f0"], p["roughness"], self.variant)
         return lambert(g, p["albedo"]) + spec
+
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """The ``optimized`` variant in closed form (the others: None, automatic differentiation): ``(K_d/π + K_s k)
+        (n·l)⁺`` with ``k = (1 + e)/(8π) (N·H)^e / (L·H)³``, K_d and K_s per channel (diagonal derivatives), and
+        ``∂k/∂e = ((N·H)^e + (1 + e)(N·H)^e ln N·H)/(8π (L·H)³)``; ``e = 2^(12 g) = s`` wherever neither g's clamp to
+        [0, 1] nor s's to [1, S_MAX] holds, so ``∂e/∂r = ∂s/∂r`` there (0 elsewhere)."""
+        if self.variant != "optimized" or not self.shades_as(Schuler):
+            return None
+        f0 = p["f0"]
+        nl = g.nl.clamp_min(0.0)
+        value = self.brdf(g, p) * nl                                    # (as Model.cosine_brdf computes it)
+        s, ds = rough.roughness_to_shininess_derivative(p["roughness"])
+        e = schuler_exponent(p["roughness"])
+        keep = (s >= 1.0) & (s <= 2.0 ** (12.0 * SCHULER_G_MAX))
+        de = torch.where(keep, e / s.clamp_min(1.0) * ds, torch.zeros_like(ds))
+        power, log_nh = guarded_pow_log(g.nh.clamp(max=1.0), e)
+        inv_lh = 1.0 / _lh(g)
+        scale = inv_lh * inv_lh * inv_lh / (8.0 * math.pi)
+        w = torch.where(g.front, nl, torch.zeros_like(nl))                # (n·l)⁺ on the front side
+        k = (1.0 + e) * power * scale * w
+        dk = (power + (1.0 + e) * power * log_nh) * scale * w * de
+        return value, {"albedo": (INV_PI * w).expand_as(value), "f0": k.expand_as(value),
+                       "roughness": (f0 * dk).unsqueeze(-1)}
 
     def environment(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         """Two-hemisphere radiance (diffuse + specular, module docstring); other environments raise."""

@@ -84,6 +84,7 @@ CLOSED.update({
     "gotanda2014-on-fresnel": lambda: materials.get("gotanda2014-on-fresnel"),
     "oren-nayar": lambda: materials.get("oren-nayar"),
     "gotanda2012": lambda: materials.get("gotanda2012"),
+    "schuler": lambda: materials.get("schuler"),
     "oren-nayar, no interreflection": lambda: materials.get("oren-nayar", interreflection=False),
     "oren-nayar, unclamped": lambda: materials.get("oren-nayar", clamp=False),
     "gotanda2014-on-fresnel unclamped": lambda: materials.get("gotanda2014-on-fresnel", clamp=False),
@@ -249,3 +250,12 @@ def test_the_dielectric_fresnel_derivative_at_its_edges():
     torch.testing.assert_close(value, ref.detach(), rtol=1e-14, atol=0.0)
     torch.testing.assert_close(d, dref, rtol=1e-10, atol=1e-14)
     assert float(dref.abs().max()) > 0 and bool((d[2] == 0).any())      # η 0.7: reflected totally at grazing
+
+
+def test_schulers_other_variants_leave_their_jacobian_to_autograd():
+    """Only Schüler's default ``optimized`` lobe has a closed form; the paper's other variants answer None, and the
+    fit differentiates their forward pass."""
+    gen = torch.Generator().manual_seed(3)
+    for variant in ("cook-torrance-simplified", "kelemen-szirmay-kalos", "cook-torrance-full"):
+        model = materials.get("schuler", variant=variant)
+        assert model.cosine_brdf_jacobian(_angles(10, gen), _params(model, 10, gen)) is None
