@@ -42,7 +42,7 @@ from torch import Tensor
 from .geometry import Angles, as_param, check_angles
 from .model import Model, register
 from .params import ALBEDO, F0, ROUGHNESS
-from .roughness import roughness_to_alpha
+from .roughness import R_MIN, roughness_to_alpha
 
 INV_PI = 1.0 / math.pi
 #: Default quadrature: Gauss-Legendre nodes in ψ (the GGX-warped polar angle) × midpoint nodes in φ.
@@ -224,39 +224,83 @@ FIT_READINGS = {
 }
 
 
+class _FitParts:
+    """The pieces of eq 8's bracket (:func:`_fit_terms`) at σ ``[..., 1]``: F_r's three factors, L_m's two, V_d's
+    σ-dependent factor and the rest of the view term, kept so that :meth:`derivative` can differentiate in σ by hand
+    (a closed form for the fit's Jacobian)."""
+
+    def __init__(self, nl: Tensor, nv: Tensor, cosri: Tensor, sigma: Tensor, reading: str, cosine: bool):
+        r = FIT_READINGS[reading]
+        self.reading, self.cosine, self.cosri = r, cosine, cosri
+        s = self.s = sigma
+        s2 = self.s2 = s.square()
+        x = self.x = nl.clamp(0.0, 1.0)
+        e = self.e = nv.clamp(0.0, 1.0)
+        one_e = self.one_e = 1.0 - e
+        a13 = self.a13 = s2 + 1.36053
+        self.p5 = _gpow(one_e, 5.0 - 4.0 * s2)
+        self.k = -0.733996 * s2 * s + 1.50912 * s2 - 1.16402 * s
+        self.p1 = _gpow(one_e, 1.0 + 1.0 / (39.0 * s2.square() + 1.0))
+        self.t1 = 1.0 - (0.542026 * s2 + 0.303573 * s) / a13
+        self.t2 = 1.0 - self.p5 / a13
+        self.t3 = self.k * self.p1 + 1.0
+        self.fr = self.t1 * self.t2 * self.t3
+        self.fresnel5 = 1.0 - (1.0 - x).pow(5)
+        self.lm_a = torch.clamp(1.0 - 2.0 * s, min=0.0) * self.fresnel5 + torch.clamp(2.0 * s, max=1.0)
+        if r["lm"] == "paper":
+            self.lm_b = (1.0 - 0.5 * s) + 0.5 * s * x  # ((1 − σ/2) n·l + σ/2 (n·l)²)/n·l
+        else:
+            self.lm_b = 1.0 - 0.5 * s * (x - 1.0)  # (1 − σ/2 (n·l − 1)) n·l / n·l
+        self.vd_den = (s2 + 0.09) * (1.31072 + 0.995584 * e)
+        self.vd_c = s2 / self.vd_den
+        self.pexp = (1.0 - 0.3726732 * e.square()) / (0.188566 + 0.388410 * e)
+        self.w = x if cosine else torch.ones_like(x)
+
+    def view(self, vd_c: Tensor, with_bp: bool = True) -> Tensor:
+        """V_d B_p (or V_d + B_p) divided by n·l, V_d's σ factor ``vd_c``: linear in it but for the sum reading's
+        B_p, which ``with_bp`` leaves out (its σ derivative is 0)."""
+        x, e, cosri, w = self.x, self.e, self.cosri, self.w
+        if self.reading["combine"] == "product":
+            # V_d B_p / n·l: B_p = cosri (≥ 0) or 1.4 n·e n·l cosri (< 0)
+            q = _one_minus_pow_over_x(x, self.pexp)  # (1 − (1 − n·l)^p)/n·l
+            pos = vd_c * q * cosri * w
+            neg = vd_c * (1.0 - _gpow(1.0 - x, self.pexp)) * 1.4 * e * cosri * w
+            return torch.where(cosri >= 0, pos, neg)
+        # V_d + B_p, each / n·l (printed without an n·l factor: unbounded as n·l → 0)
+        inv = w / x.clamp_min(1e-6) if not self.cosine else torch.ones_like(x)
+        bp = torch.where(cosri >= 0, cosri * inv, 1.4 * e * cosri * w) if with_bp else torch.zeros_like(x)
+        return vd_c * (1.0 - _gpow(1.0 - x, self.pexp)) * inv + bp
+
+    def bracket(self) -> Tensor:
+        return self.fr * self.lm_a * self.lm_b * self.w + self.view(self.vd_c)
+
+    def derivative(self) -> Tensor:
+        """``∂ bracket/∂σ``, the derivatives automatic differentiation gives (a clamp's: 0 where it holds; a power
+        of a base at 0: 0, :func:`_gpow`)."""
+        s, s2, a13, one_e = self.s, self.s2, self.a13, self.one_e
+        ln_1e = torch.where(one_e > 1e-12, torch.log(torch.where(one_e > 1e-12, one_e, torch.ones_like(one_e))),
+                            torch.zeros_like(one_e))
+        num1 = 0.542026 * s2 + 0.303573 * s
+        dt1 = -((2.0 * 0.542026 * s + 0.303573) * a13 - num1 * 2.0 * s) / a13.square()
+        dp5 = self.p5 * ln_1e * (-8.0 * s)
+        dt2 = -(dp5 * a13 - self.p5 * 2.0 * s) / a13.square()
+        q4 = 39.0 * s2.square() + 1.0
+        dp1 = self.p1 * ln_1e * (-156.0 * s2 * s / q4.square())
+        dk = -3.0 * 0.733996 * s2 + 2.0 * 1.50912 * s - 1.16402
+        dt3 = dk * self.p1 + self.k * dp1
+        dfr = dt1 * self.t2 * self.t3 + self.t1 * dt2 * self.t3 + self.t1 * self.t2 * dt3
+        zero = torch.zeros_like(s)
+        dlm_a = torch.where(1.0 - 2.0 * s >= 0.0, -2.0 * self.fresnel5, zero) + torch.where(2.0 * s <= 1.0, 2.0 + zero,
+                                                                                            zero)
+        dlm_b = (-0.5 + 0.5 * self.x) if self.reading["lm"] == "paper" else -0.5 * (self.x - 1.0)
+        dvd_c = 0.18 * s / ((s2 + 0.09).square() * (1.31072 + 0.995584 * self.e))
+        return ((dfr * self.lm_a * self.lm_b + self.fr * dlm_a * self.lm_b + self.fr * self.lm_a * dlm_b) * self.w
+                + self.view(dvd_c, with_bp=False))
+
+
 def _fit_terms(nl: Tensor, nv: Tensor, cosri: Tensor, sigma: Tensor, reading: str, cosine: bool) -> Tensor:
     """The bracket F_r L_m + V_d B_p of eq 8 divided by n·l (times n·l with ``cosine``)."""
-    r = FIT_READINGS[reading]
-    s = sigma
-    s2 = s.square()
-    x = nl.clamp(0.0, 1.0)
-    e = nv.clamp(0.0, 1.0)
-    one_e = 1.0 - e
-    a13 = s2 + 1.36053
-    fr = (1.0 - (0.542026 * s2 + 0.303573 * s) / a13) \
-        * (1.0 - _gpow(one_e, 5.0 - 4.0 * s2) / a13) \
-        * ((-0.733996 * s2 * s + 1.50912 * s2 - 1.16402 * s) * _gpow(one_e, 1.0 + 1.0 / (39.0 * s2.square() + 1.0))
-           + 1.0)
-    lm_a = torch.clamp(1.0 - 2.0 * s, min=0.0) * (1.0 - (1.0 - x).pow(5)) + torch.clamp(2.0 * s, max=1.0)
-    if r["lm"] == "paper":
-        lm_b = (1.0 - 0.5 * s) + 0.5 * s * x  # ((1 − σ/2) n·l + σ/2 (n·l)²)/n·l
-    else:
-        lm_b = 1.0 - 0.5 * s * (x - 1.0)  # (1 − σ/2 (n·l − 1)) n·l / n·l
-    vd_c = s2 / ((s2 + 0.09) * (1.31072 + 0.995584 * e))
-    p = (1.0 - 0.3726732 * e.square()) / (0.188566 + 0.388410 * e)
-    w = x if cosine else torch.ones_like(x)
-    if r["combine"] == "product":
-        # V_d B_p / n·l: B_p = cosri (≥ 0) or 1.4 n·e n·l cosri (< 0)
-        q = _one_minus_pow_over_x(x, p)  # (1 − (1 − n·l)^p)/n·l
-        pos = vd_c * q * cosri * w
-        neg = vd_c * (1.0 - _gpow(1.0 - x, p)) * 1.4 * e * cosri * w
-        view = torch.where(cosri >= 0, pos, neg)
-    else:
-        # V_d + B_p, each / n·l (printed without an n·l factor: unbounded as n·l → 0)
-        inv = w / x.clamp_min(1e-6) if not cosine else torch.ones_like(x)
-        bp = torch.where(cosri >= 0, cosri * inv, 1.4 * e * cosri * w)
-        view = vd_c * (1.0 - _gpow(1.0 - x, p)) * inv + bp
-    return fr * lm_a * lm_b * w + view
+    return _FitParts(nl, nv, cosri, sigma, reading, cosine).bracket()
 
 
 SIGMA_MAPS = ("alpha", "roughness", "oren-nayar")
@@ -352,3 +396,27 @@ class MicrofacetDiffuse(Model):
 
     def cosine_brdf(self, g, p):
         return self._eval(g, p, True)
+
+    def cosine_brdf_jacobian(self, g: Angles, p: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """The eq 8 fit in closed form (``method="numerical"``: None): ``ρ (1 − f0) 21/(20π) · bracket(σ)``, the
+        bracket's σ derivative by hand (:class:`_FitParts`), σ = α = r² inside its clamps; ρ and f0 act per channel
+        (diagonal derivatives)."""
+        if self.method != "fitted" or not self.shades_as(MicrofacetDiffuse):
+            return None
+        albedo, f0, r = p["albedo"], p["f0"], p["roughness"]
+        sigma = roughness_to_alpha(r).clamp(0.0, 1.0)
+        parts = _FitParts(g.nl, g.nv, g.lv - g.nl * g.nv, sigma, self.reading, True)
+        bracket = parts.bracket()
+        scale = 1.05 * INV_PI
+        value = albedo * (1.0 - f0) * scale * bracket
+        value = torch.where(g.front, torch.broadcast_tensors(value, albedo)[0], torch.zeros_like(value))
+        inside = (r >= R_MIN) & (r <= 1.0)
+        dsigma = torch.where(inside, 2.0 * r.clamp(R_MIN, 1.0), torch.zeros_like(r))
+        dbracket = parts.derivative() * dsigma
+
+        def front(x: Tensor) -> Tensor:
+            x = torch.broadcast_tensors(x, value)[0]
+            return torch.where(g.front, x, torch.zeros_like(x))
+
+        return value, {"albedo": front((1.0 - f0) * scale * bracket), "f0": front(-albedo * scale * bracket),
+                       "roughness": front(albedo * (1.0 - f0) * scale * dbracket)[..., None]}

@@ -85,6 +85,9 @@ CLOSED.update({
     "oren-nayar": lambda: materials.get("oren-nayar"),
     "gotanda2012": lambda: materials.get("gotanda2012"),
     "schuler": lambda: materials.get("schuler"),
+    "microfacet-diffuse": lambda: materials.get("microfacet-diffuse"),
+    "microfacet-diffuse, ue4 reading": lambda: materials.get("microfacet-diffuse", reading="ue4"),
+    "gotanda2014": lambda: materials.get("gotanda2014"),
     "oren-nayar, no interreflection": lambda: materials.get("oren-nayar", interreflection=False),
     "oren-nayar, unclamped": lambda: materials.get("oren-nayar", clamp=False),
     "gotanda2014-on-fresnel unclamped": lambda: materials.get("gotanda2014-on-fresnel", clamp=False),
@@ -151,7 +154,8 @@ def _callable_fresnel() -> Microfacet:
 
 
 @pytest.mark.parametrize("make", [
-    lambda: materials.get("gotanda2014"),
+    lambda: materials.get("microfacet-diffuse", method="numerical"),
+    lambda: SumModel(Microfacet(), materials.get("microfacet-diffuse", method="numerical")),
     lambda: materials.get("gotanda2012-layered"),
     lambda: KnownParams(materials.get("gotanda2012-layered"), {"coat_ior": 1.5}),
     lambda: _Tinted(),
