@@ -395,7 +395,10 @@ def shading_bases(model: Model, prepared) -> Tensor | None:
     specs = list(model.params)
     if not specs or not all(s.linear for s in specs):
         return None
-    g = prepared.gbuffer
+    g = getattr(prepared, "gbuffer", None)
+    if g is None:
+        raise ObservationError("shading_bases: prepared must be a view's shading prepared from its G-buffer "
+                               "(renderer.shading.prepare(render_gbuffer(mesh, camera, 1), mesh, lights))")
     dtype = prepared.n.dtype
 
     def render(name: str | None = None, channel: int = 0) -> Tensor:

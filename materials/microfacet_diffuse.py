@@ -231,7 +231,7 @@ class _FitParts:
 
     def __init__(self, nl: Tensor, nv: Tensor, cosri: Tensor, sigma: Tensor, reading: str, cosine: bool):
         r = FIT_READINGS[reading]
-        self.reading, self.cosine, self.cosri = r, cosine, cosri
+        self.rules, self.cosine, self.cosri = r, cosine, cosri
         s = self.s = sigma
         s2 = self.s2 = s.square()
         x = self.x = nl.clamp(0.0, 1.0)
@@ -260,7 +260,7 @@ class _FitParts:
         """V_d B_p (or V_d + B_p) divided by n·l, V_d's σ factor ``vd_c``: linear in it but for the sum reading's
         B_p, which ``with_bp`` leaves out (its σ derivative is 0)."""
         x, e, cosri, w = self.x, self.e, self.cosri, self.w
-        if self.reading["combine"] == "product":
+        if self.rules["combine"] == "product":
             # V_d B_p / n·l: B_p = cosri (≥ 0) or 1.4 n·e n·l cosri (< 0)
             q = _one_minus_pow_over_x(x, self.pexp)  # (1 − (1 − n·l)^p)/n·l
             pos = vd_c * q * cosri * w
@@ -292,7 +292,7 @@ class _FitParts:
         zero = torch.zeros_like(s)
         dlm_a = torch.where(1.0 - 2.0 * s >= 0.0, -2.0 * self.fresnel5, zero) + torch.where(2.0 * s <= 1.0, 2.0 + zero,
                                                                                             zero)
-        dlm_b = (-0.5 + 0.5 * self.x) if self.reading["lm"] == "paper" else -0.5 * (self.x - 1.0)
+        dlm_b = (-0.5 + 0.5 * self.x) if self.rules["lm"] == "paper" else -0.5 * (self.x - 1.0)
         dvd_c = 0.18 * s / ((s2 + 0.09).square() * (1.31072 + 0.995584 * self.e))
         return ((dfr * self.lm_a * self.lm_b + self.fr * dlm_a * self.lm_b + self.fr * self.lm_a * dlm_b) * self.w
                 + self.view(dvd_c, with_bp=False))
