@@ -71,8 +71,12 @@ CLOSED.update({
     "gotanda2010-specular, exact normalisation, Schüler's Fresnel": lambda: materials.get(
         "gotanda2010-specular", normalization="exact", fresnel="schuler"),
 })
-# the Oren-Nayar lobes linear in A and B (every form and clamp option)
+# every Oren-Nayar lobe (each form and clamp option), Gotanda 2012 and 2014, the microfacet diffuse fit, Schüler's
+# optimized lobe
 CLOSED.update({
+    "oren-nayar": lambda: materials.get("oren-nayar"),
+    "oren-nayar, no interreflection": lambda: materials.get("oren-nayar", interreflection=False),
+    "oren-nayar, unclamped": lambda: materials.get("oren-nayar", clamp=False),
     "oren-nayar-qualitative": lambda: materials.get("oren-nayar-qualitative"),
     "gotanda-on-simplified, sigma": lambda: materials.get("gotanda-on-simplified"),
     "gotanda-on-simplified, shininess": lambda: materials.get("gotanda-on-simplified", form="shininess"),
@@ -82,15 +86,12 @@ CLOSED.update({
     "gotanda2014-on": lambda: materials.get("gotanda2014-on"),
     "gotanda2014-on, roughness known": lambda: KnownParams(materials.get("gotanda2014-on"), {"roughness": 0.6}),
     "gotanda2014-on-fresnel": lambda: materials.get("gotanda2014-on-fresnel"),
-    "oren-nayar": lambda: materials.get("oren-nayar"),
+    "gotanda2014-on-fresnel unclamped": lambda: materials.get("gotanda2014-on-fresnel", clamp=False),
     "gotanda2012": lambda: materials.get("gotanda2012"),
-    "schuler": lambda: materials.get("schuler"),
     "microfacet-diffuse": lambda: materials.get("microfacet-diffuse"),
     "microfacet-diffuse, ue4 reading": lambda: materials.get("microfacet-diffuse", reading="ue4"),
     "gotanda2014": lambda: materials.get("gotanda2014"),
-    "oren-nayar, no interreflection": lambda: materials.get("oren-nayar", interreflection=False),
-    "oren-nayar, unclamped": lambda: materials.get("oren-nayar", clamp=False),
-    "gotanda2014-on-fresnel unclamped": lambda: materials.get("gotanda2014-on-fresnel", clamp=False),
+    "schuler": lambda: materials.get("schuler"),
 })
 # every D, G and Beckmann Λ form (GGX has one Λ), and every named F
 CLOSED.update({f"microfacet D={d} G={g} {lam}": (lambda d=d, g=g, lam=lam: Microfacet(D=d, G=g, beckmann_lambda=lam))
