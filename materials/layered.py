@@ -73,7 +73,7 @@ attenuation *before* the max(0, ·); the clamped mean is c − 2α' + α'²/c fo
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 
 import torch
 from torch import Tensor
@@ -174,6 +174,18 @@ def relative_f0(f0: Tensor, coat_ior: Tensor) -> Tensor:
     num = (1.0 + r) - coat_ior * (1.0 - r)
     den = (1.0 + r) + coat_ior * (1.0 - r)
     return (num / den).square()
+
+
+def relative_f0_derivative(f0: Tensor, coat_ior: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`relative_f0` and its derivative in f0: with r = √f0, num = (1 + r) − η₁(1 − r) and den = (1 + r) +
+    η₁(1 − r), ``∂f0_rel/∂r = 8 η₁ num/den³`` (num′ den − num den′ = 4η₁) and ``∂r/∂f0 = 1/(2r)``; 0 where √f0 is
+    cut (f0 ≤ 1e-12), as automatic differentiation of :func:`relative_f0` gives."""
+    ok = f0 > 1e-12
+    r = torch.where(ok, torch.sqrt(torch.where(ok, f0, torch.ones_like(f0))), torch.zeros_like(f0))
+    num = (1.0 + r) - coat_ior * (1.0 - r)
+    den = (1.0 + r) + coat_ior * (1.0 - r)
+    d = 4.0 * coat_ior * num / (torch.where(ok, r, torch.ones_like(r)) * den * den * den)
+    return (num / den).square(), torch.where(ok, d, torch.zeros_like(d))
 
 
 def relative_ior(ior: Tensor, coat_ior: Tensor) -> Tensor:
@@ -296,6 +308,57 @@ class GotandaLayered(Model):
         if self.absorption == "exact":
             return absorption_exact(g.nl, g.nv, p["absorption"], p["coat_ior"])
         return absorption_linear(g.nl, g.nv, p["absorption"])
+
+    def attenuation_derivative(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
+        """``∂A/∂absorption`` ``[..., 3]`` of :meth:`attenuation` (each channel's own): ``−path · A`` for eq 2,
+        ``−(1/n·l + 1/n·v)`` where eq 3's clamp does not hold (0 where it does)."""
+        a = p["absorption"]
+        if self.absorption == "exact":
+            path = 1.0 / refracted_cos(g.nl, p["coat_ior"]) + 1.0 / refracted_cos(g.nv, p["coat_ior"])
+            return -path * torch.exp(-a * path)
+        inv = 1.0 / clamp_cos(g.nl, COS_EPS) + 1.0 / clamp_cos(g.nv, COS_EPS)
+        return torch.where(1.0 - a * inv > 0.0, -inv, torch.zeros_like(a * inv))
+
+    def cosine_brdf_jacobian_in(self, g: Angles, p: Mapping[str, Tensor],
+                                names: Collection[str]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """The derivatives in the bottom's parameters and the absorption, the coat's held (as a fit that measured
+        the coat once holds it, :class:`materials.KnownParams`): ``top + T A(absorption) bottom(p_b)`` is the
+        bottom's closed form at the refracted angles and the parameters seen from inside the coat (f0 → f0_rel,
+        :func:`relative_f0_derivative`; ior → ior/η₁), scaled by the coat's transmittance T and the absorption A, and
+        ``T ∂A/∂absorption · bottom``. None for the coat's own parameters, or a bottom without a closed form."""
+        if not self.shades_as(GotandaLayered) or {"coat_ior", "coat_roughness"} & set(names):
+            return None
+        top, trans = self.coat_terms(g, p, True)
+        pb, gb = self.bottom_params(p), self.bottom_angles(g, p)
+        out = self.bottom.cosine_brdf_jacobian(gb, pb)
+        if out is None:
+            return None
+        bot, dbot = out
+        atten = self.attenuation(g, p)
+        t = trans * atten                                                   # [..., 3]
+        value = top + t * bot
+
+        def front(x: Tensor) -> Tensor:             # (a diagonal derivative [..., 3] or a full one [..., 3, C])
+            mask = g.front if x.dim() == value.dim() else g.front.unsqueeze(-1)
+            return torch.where(mask, x, torch.zeros_like(x))
+
+        def scaled(d: Tensor, chain: Tensor | None = None) -> Tensor:
+            diagonal = d.dim() == value.dim()
+            if chain is not None:                           # a per-channel map of the parameter (f0, ior)
+                d = d * (chain if diagonal else chain.unsqueeze(-2))
+            return front(d * (t if diagonal else t.unsqueeze(-1)))
+
+        grads = {}
+        for name in names:
+            if name == "absorption":
+                grads[name] = front(trans * self.attenuation_derivative(g, p) * bot)
+            elif name == "f0" and self._has_f0:
+                grads[name] = scaled(dbot[name], relative_f0_derivative(p["f0"], p["coat_ior"])[1])
+            elif name == "ior" and self._has_ior:
+                grads[name] = scaled(dbot[name], 1.0 / p["coat_ior"])
+            else:
+                grads[name] = scaled(dbot[name])
+        return torch.where(g.front, value, torch.zeros_like(value)), grads
 
     def coat_terms(self, g: Angles, p: Mapping[str, Tensor], cosine: bool) -> tuple[Tensor, Tensor]:
         """(:meth:`coat_specular`, :meth:`transmittance`), each ``[..., 1]``: functions of the angles and the coat's

@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextvars
 import functools
 import inspect
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from typing import TYPE_CHECKING
 
 import torch
@@ -129,6 +129,17 @@ class Model:
         (:meth:`shades_as`) until it writes its own.
         """
         return None
+
+    def cosine_brdf_jacobian_in(self, g: Angles, p: Mapping[str, Tensor],
+                                names: Collection[str]) -> tuple[Tensor, dict[str, Tensor]] | None:
+        """:meth:`cosine_brdf_jacobian` with the derivatives in ``names`` alone (the others' values held: a
+        :class:`KnownParams` asks its base for the free parameters'). By default the whole closed form, filtered; a
+        model whose closed form covers only some parameters (:class:`materials.layered.GotandaLayered`: not the
+        coat's) answers here when ``names`` are among them."""
+        out = self.cosine_brdf_jacobian(g, p)
+        if out is None:
+            return None
+        return out[0], {name: d for name, d in out[1].items() if name in names}
 
     def shades_as(self, cls: type) -> bool:
         """Whether this model's :meth:`brdf` and :meth:`cosine_brdf` are those of ``cls``: a closed-form Jacobian
@@ -303,10 +314,7 @@ class KnownParams(Model):
         """The base model's closed form at the completed parameters, the known ones' derivatives left out."""
         if not self.shades_as(KnownParams):
             return None
-        out = self.base.cosine_brdf_jacobian(g, self.full(p))
-        if out is None:
-            return None
-        return out[0], {name: d for name, d in out[1].items() if name in p}
+        return self.base.cosine_brdf_jacobian_in(g, self.full(p), frozenset(p))
 
     def environment(self, env: Environment, n: Tensor, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         return self.base.environment(env, n, v, self.full(p))

@@ -92,6 +92,12 @@ CLOSED.update({
     "microfacet-diffuse, ue4 reading": lambda: materials.get("microfacet-diffuse", reading="ue4"),
     "gotanda2014": lambda: materials.get("gotanda2014"),
     "schuler": lambda: materials.get("schuler"),
+    # the layered model with its coat held known, as the fit holds it (its Jacobian in the free parameters only)
+    "gotanda2012-layered, coat known": lambda: KnownParams(materials.get("gotanda2012-layered"),
+                                                           {"coat_ior": 1.5, "coat_roughness": 0.2}),
+    "gotanda2012-layered (exact absorption, constant bottom Fresnel), coat known": lambda: KnownParams(
+        materials.get("gotanda2012-layered", absorption="exact", bottom_fresnel="constant"),
+        {"coat_ior": 1.6, "coat_roughness": 0.4}),
 })
 # every D, G and Beckmann Λ form (GGX has one Λ), and every named F
 CLOSED.update({f"microfacet D={d} G={g} {lam}": (lambda d=d, g=g, lam=lam: Microfacet(D=d, G=g, beckmann_lambda=lam))
