@@ -279,7 +279,13 @@ def test_auto_judges_large_maps_on_a_coarser_copy_of_the_problem(lambert_ds, tmp
     assert abs(part.n_samples - n * (128 / 192) ** 2) < 4 * math.sqrt(n * 0.25), (part.n_samples, n)
     calls = len(sizes)
     assert R._trial_observations(observe, full[96], 96, views) is full[96] and len(sizes) == calls
-    # the report says so
+    # Lambert explains this Lambert scene at full size: chosen before any coarse trial (_explained_at_full_size)
+    rep = reconstruct(lambert_ds, model="auto", out_dir=tmp_path / "full", progress=False, texture_size=256,
+                      iterations=5, grid=4)
+    assert rep.model == "lambert" and [s["full_size"] for s in rep.selection] == [True]
+    assert "auto_trials" not in rep.samples
+    # without that, the trials run on the coarse copy, and the report says so
+    monkeypatch.setattr(R, "_explained_at_full_size", lambda *a, **k: False)
     rep = reconstruct(lambert_ds, model="auto", out_dir=tmp_path / "o", progress=False, texture_size=256,
                       iterations=5, grid=4)
     tr = rep.samples["auto_trials"]
