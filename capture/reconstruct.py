@@ -1002,20 +1002,13 @@ def _select_model(candidates: list[str], known: Mapping[str, object], fit_views:
     not tried are ``report.skipped["models_not_tried"]``."""
     prog.start("select", f"{len(candidates)} candidates")
     if seen.texture_size > AUTO_TRIAL_TEXTURE and \
-            _explained_at_full_size(candidates[0], known, seen, fitter, auto_chi2, report):
+            _explained_at_full_size(candidates[0], known, seen, fitter, auto_chi2, report, prog):
         report.skipped["models_not_tried"] = list(candidates[1:])
         return candidates[0]
     trial = _trial_problem(seen, fit_views, report)
     best_err, chosen = math.inf, candidates[0]
     for name in candidates:
-        m = _model(name, known)
-        params = list(m.param_names)
-        ts = time.perf_counter()
-        try:
-            fit, m, notes = fitter.fit(m, trial.train_obs, trial.train_fp)
-        except SolverError as exc:
-            prog.abort()
-            raise ReconstructionError(f"auto, trial fit of {name}: {exc}") from None
+        fit, m, notes, params, ts = _fit_candidate(name, known, fitter, trial.train_obs, trial.train_fp, "trial", prog)
         err, chi2 = _trial_errors(m, fit, trial, seen)
         report.selection.append({"model": name, "heldout_mae": err, "train_chi2": chi2,
                                  "seconds": time.perf_counter() - ts,
@@ -1045,8 +1038,24 @@ def _select_model(candidates: list[str], known: Mapping[str, object], fit_views:
     return chosen
 
 
+def _fit_candidate(name: str, known: Mapping[str, object], fitter: _Fitter, obs: Observations, fp, what: str,
+                   prog: Progress) -> tuple[FitResult, object, dict, list[str], float]:
+    """Fit auto's candidate ``name`` to ``obs`` (and the footprints ``fp``): ``(fit, the model fitted, its scalars'
+    notes, its parameter names, the start time)``; a solver error is a :class:`ReconstructionError` naming the
+    ``what`` fit (the progress bar removed first)."""
+    m = _model(name, known)
+    params = list(m.param_names)
+    ts = time.perf_counter()
+    try:
+        fit, m, notes = fitter.fit(m, obs, fp)
+    except SolverError as exc:
+        prog.abort()
+        raise ReconstructionError(f"auto, {what} fit of {name}: {exc}") from None
+    return fit, m, notes, params, ts
+
+
 def _explained_at_full_size(name: str, known: Mapping[str, object], seen: _Observed, fitter: _Fitter,
-                            auto_chi2: float, report: Report) -> bool:
+                            auto_chi2: float, report: Report, prog: Progress) -> bool:
     """Whether the candidate ``name`` (auto's cheapest) explains the fitted views' photos within their noise (χ² per
     residual ≤ ``auto_chi2``) when fitted at the maps' full size; recorded as a row of ``report.selection``
     (``full_size``, no held-out error).
@@ -1057,13 +1066,7 @@ def _explained_at_full_size(name: str, known: Mapping[str, object], seen: _Obser
     on 128² maps): Lambert's trial χ² 90.7 and held-out error 0.026 against GGX + Lambert's 100 and 0.0057, so auto
     chose GGX + Lambert — 56 s, well-lit albedo 0.0177. Lambert at full size reads χ² 0.18, which ends the
     selection: 0.0082 in 7–8 s."""
-    m = _model(name, known)
-    params = list(m.param_names)
-    ts = time.perf_counter()
-    try:
-        fit, m, notes = fitter.fit(m, seen.obs, seen.fp)
-    except SolverError as exc:
-        raise ReconstructionError(f"auto, full-size fit of {name}: {exc}") from None
+    fit, m, notes, params, ts = _fit_candidate(name, known, fitter, seen.obs, seen.fp, "full-size", prog)
     chi2 = _footprint_misfit(m, fit, seen.fp, seen.obs) if seen.fp is not None else \
         _misfit(m, fit, seen.obs, seen.sampling)
     row = {"model": name, "full_size": True, "train_chi2": chi2, "seconds": time.perf_counter() - ts,
