@@ -67,8 +67,8 @@ def test_footprints_predict_antialiased_photos_that_pixel_centres_miss(ggx):
 def test_shading_bases_are_an_affine_models_shading_without_its_texture():
     """:func:`shading_bases` of Lambert on a view: its three images weighted by any constant albedo are the model's
     radiance (exactly its sum, so their relative curvature bounds every textured photo's shading); a model with a
-    nonlinear parameter has none, unless it is known. On a textured Lambert scene the photo's curvature asks rays at the texture's
-    edges that the bases do not (measured: 8 622 against 12 200 rays over the view's pixels)."""
+    nonlinear parameter has none, unless it is known. On a textured Lambert scene the photo's curvature asks rays at
+    the texture's edges that the bases do not (measured: 8 622 against 12 200 rays over the view's pixels)."""
     from renderer.shading import shade
 
     cfg = small_scene("lambert", image_size=64, texture_size=64, n_views=1)
