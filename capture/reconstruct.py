@@ -589,14 +589,15 @@ def reconstruct(dataset_path, model: str = "auto", out_dir=None, *, force: bool 
         seen = replace(seen, fp_all=None)
     fitter = _Fitter(solver, loss, seen.options, inputs.scalars, _solver_progress(prog), inputs.device)
 
+    ready = None                        # auto's full-size fit of the model it chose, when it made one
     with _timed(times, "select"):
         if len(inputs.candidates) > 1:
-            model = _select_model(inputs.candidates, inputs.known, data.fit_views, seen, fitter, auto_gain, auto_chi2,
-                                  prog, report)
+            model, ready = _select_model(inputs.candidates, inputs.known, data.fit_views, seen, fitter, auto_gain,
+                                         auto_chi2, prog, report)
     mdl = _model(model, inputs.known)
     report.model, report.model_spec = model, _model_spec(model)
     with _timed(times, "solve"):
-        fitted = _final_fit(mdl, seen, fitter, data.fit_views, prog, report)
+        fitted = _final_fit(mdl, seen, fitter, data.fit_views, prog, report, ready)
     pred = _fitted_prediction(fitted.model, fitted.fit, seen.obs, seen.fp, seen.sampling)
     chi2 = _check_misfit(report, fitted, seen, pred)
     known_maps = _known_maps(fitted.model, seen.obs.map_size)
@@ -996,15 +997,18 @@ def _trial_errors(model, fit: FitResult, trial: _Trial, seen: _Observed) -> tupl
 
 
 def _select_model(candidates: list[str], known: Mapping[str, object], fit_views: list[int], seen: _Observed,
-                  fitter: _Fitter, auto_gain: float, auto_chi2: float, prog: Progress, report: Report) -> str:
+                  fitter: _Fitter, auto_gain: float, auto_chi2: float, prog: Progress,
+                  report: Report) -> tuple[str, tuple | None]:
     """``model="auto"``: fit the ``candidates`` cheapest first on the trial problem (:func:`_trial_problem`) and
-    return the one chosen (module docstring, step 4); each trial is a row of ``report.selection``, the candidates
-    not tried are ``report.skipped["models_not_tried"]``."""
+    return the one chosen (module docstring, step 4) with, when the cheapest was chosen at full size
+    (:func:`_explained_at_full_size`), that fit ``(fit, model, scalar notes)`` for :func:`_final_fit` (else None);
+    each trial is a row of ``report.selection``, the candidates not tried are ``report.skipped["models_not_tried"]``."""
     prog.start("select", f"{len(candidates)} candidates")
-    if seen.texture_size > AUTO_TRIAL_TEXTURE and \
-            _explained_at_full_size(candidates[0], known, seen, fitter, auto_chi2, report, prog):
-        report.skipped["models_not_tried"] = list(candidates[1:])
-        return candidates[0]
+    if seen.texture_size > AUTO_TRIAL_TEXTURE:
+        ready = _explained_at_full_size(candidates[0], known, seen, fitter, auto_chi2, report, prog)
+        if ready is not None:
+            report.skipped["models_not_tried"] = list(candidates[1:])
+            return candidates[0], ready
     trial = _trial_problem(seen, fit_views, report)
     best_err, chosen = math.inf, candidates[0]
     for name in candidates:
@@ -1035,7 +1039,7 @@ def _select_model(candidates: list[str], known: Mapping[str, object], fit_views:
             break
     skipped = [c for c in candidates if c not in [s["model"] for s in report.selection]]
     report.skipped["models_not_tried"] = skipped
-    return chosen
+    return chosen, None
 
 
 def _fit_candidate(name: str, known: Mapping[str, object], fitter: _Fitter, obs: Observations, fp, what: str,
@@ -1055,17 +1059,18 @@ def _fit_candidate(name: str, known: Mapping[str, object], fitter: _Fitter, obs:
 
 
 def _explained_at_full_size(name: str, known: Mapping[str, object], seen: _Observed, fitter: _Fitter,
-                            auto_chi2: float, report: Report, prog: Progress) -> bool:
-    """Whether the candidate ``name`` (auto's cheapest) explains the fitted views' photos within their noise (χ² per
-    residual ≤ ``auto_chi2``) when fitted at the maps' full size; recorded as a row of ``report.selection``
-    (``full_size``, no held-out error).
+                            auto_chi2: float, report: Report, prog: Progress) -> tuple | None:
+    """The fit ``(fit, model, scalar notes)`` of the candidate ``name`` (auto's cheapest) at the maps' full size when
+    it explains the fitted views' photos within their noise (χ² per residual ≤ ``auto_chi2``), else None; recorded
+    as a row of ``report.selection`` (``full_size``, no held-out error). The fit is the final fit's own call, which
+    :func:`_final_fit` then takes instead of repeating it.
 
     The trials judge larger maps on a coarser copy (:func:`_trial_observations`), where no model can explain a
     texture finer than the copy: every trial then misfits, and a richer model wins by absorbing part of that
     misfit in its extra maps. Measured on the 256² Mitsuba torus (a Lambert albedo of stripes and checks; trials
     on 128² maps): Lambert's trial χ² 90.7 and held-out error 0.026 against GGX + Lambert's 100 and 0.0057, so auto
     chose GGX + Lambert — 56 s, well-lit albedo 0.0177. Lambert at full size reads χ² 0.18, which ends the
-    selection: 0.0082 in 7–8 s."""
+    selection, and is the final fit: 0.0082 in 6.3 s."""
     fit, m, notes, params, ts = _fit_candidate(name, known, fitter, seen.obs, seen.fp, "full-size", prog)
     chi2 = _footprint_misfit(m, fit, seen.fp, seen.obs) if seen.fp is not None else \
         _misfit(m, fit, seen.obs, seen.sampling)
@@ -1075,8 +1080,8 @@ def _explained_at_full_size(name: str, known: Mapping[str, object], seen: _Obser
     if chi2 <= auto_chi2:
         row["stopped"] = f"explains its photos at the maps' full size within their noise (χ² per residual " \
                          f"{chi2:.3g} ≤ {auto_chi2:g}); richer models skipped"
-        return True
-    return False
+        return fit, m, notes
+    return None
 
 
 def _model_spec(name: str) -> dict:
@@ -1095,7 +1100,7 @@ class _Fitted(NamedTuple):
 
 
 def _final_fit(mdl, seen: _Observed, fitter: _Fitter, fit_views: list[int], prog: Progress,
-               report: Report) -> _Fitted:
+               report: Report, ready: tuple | None = None) -> _Fitted:
     """Fit the chosen model on the fitted views at full size; warn of scalars observable in no texel. With the fast
     solver and pixel footprints, maps finer than the photos are fitted on a pyramid (the report's ``fit.pyramid``):
     when the pixel centres sample them too sparsely for the per-texel stages (:func:`capture.fit.pyramid_size`),
@@ -1149,7 +1154,8 @@ def _final_fit(mdl, seen: _Observed, fitter: _Fitter, fit_views: list[int], prog
             fit.info["pyramid"] = {**note, "refine_s": time.perf_counter() - t1}
         else:
             seen.views.release()
-            fit, mdl, scalar_notes = fitter.fit(mdl, seen.obs, seen.fp)
+            # (auto's full-size fit of this model is this very call: taken as it is, ``ready``)
+            fit, mdl, scalar_notes = ready if ready is not None else fitter.fit(mdl, seen.obs, seen.fp)
     except SolverError as exc:
         prog.abort()
         raise ReconstructionError(str(exc)) from None

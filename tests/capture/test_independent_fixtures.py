@@ -227,6 +227,8 @@ def test_auto_keeps_a_model_that_explains_the_photos_at_full_size(mitsuba_scene,
     assert len(r.selection) == 1 and r.selection[0]["full_size"] and r.selection[0]["train_chi2"] <= 4.0
     assert r.skipped["models_not_tried"] == ["ggx-lambert", "gotanda2012-layered"]
     assert "at full size" in (tmp_path / "auto" / "summary.txt").read_text()
+    # that fit is the final one, not repeated: its own time is within the selection's row
+    assert 0 < r.fit["seconds"] <= r.selection[0]["seconds"]
 
 
 def test_cameras_in_another_renderers_frame_are_reported_not_passed(mitsuba_scene, tmp_path):

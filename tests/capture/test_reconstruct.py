@@ -285,7 +285,7 @@ def test_auto_judges_large_maps_on_a_coarser_copy_of_the_problem(lambert_ds, tmp
     assert rep.model == "lambert" and [s["full_size"] for s in rep.selection] == [True]
     assert "auto_trials" not in rep.samples
     # without that, the trials run on the coarse copy, and the report says so
-    monkeypatch.setattr(R, "_explained_at_full_size", lambda *a, **k: False)
+    monkeypatch.setattr(R, "_explained_at_full_size", lambda *a, **k: None)
     rep = reconstruct(lambert_ds, model="auto", out_dir=tmp_path / "o", progress=False, texture_size=256,
                       iterations=5, grid=4)
     tr = rep.samples["auto_trials"]
