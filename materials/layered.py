@@ -309,15 +309,14 @@ class GotandaLayered(Model):
             return absorption_exact(g.nl, g.nv, p["absorption"], p["coat_ior"])
         return absorption_linear(g.nl, g.nv, p["absorption"])
 
-    def attenuation_derivative(self, g: Angles, p: Mapping[str, Tensor]) -> Tensor:
-        """``∂A/∂absorption`` ``[..., 3]`` of :meth:`attenuation` (each channel's own): ``−path · A`` for eq 2,
-        ``−(1/n·l + 1/n·v)`` where eq 3's clamp does not hold (0 where it does)."""
-        a = p["absorption"]
+    def attenuation_derivative(self, g: Angles, p: Mapping[str, Tensor], atten: Tensor) -> Tensor:
+        """``∂A/∂absorption`` ``[..., 3]`` of :meth:`attenuation` (each channel's own), given ``atten`` = A:
+        ``−path · A`` for eq 2, ``−(1/n·l + 1/n·v)`` where eq 3's clamp does not hold (A > 0; 0 where it does)."""
         if self.absorption == "exact":
             path = 1.0 / refracted_cos(g.nl, p["coat_ior"]) + 1.0 / refracted_cos(g.nv, p["coat_ior"])
-            return -path * torch.exp(-a * path)
+            return -path * atten
         inv = 1.0 / clamp_cos(g.nl, COS_EPS) + 1.0 / clamp_cos(g.nv, COS_EPS)
-        return torch.where(1.0 - a * inv > 0.0, -inv, torch.zeros_like(a * inv))
+        return torch.where(atten > 0.0, -inv, torch.zeros_like(inv)).expand_as(atten)
 
     def cosine_brdf_jacobian_in(self, g: Angles, p: Mapping[str, Tensor],
                                 names: Collection[str]) -> tuple[Tensor, dict[str, Tensor]] | None:
@@ -351,7 +350,7 @@ class GotandaLayered(Model):
         grads = {}
         for name in names:
             if name == "absorption":
-                grads[name] = front(trans * self.attenuation_derivative(g, p) * bot)
+                grads[name] = front(trans * self.attenuation_derivative(g, p, atten) * bot)
             elif name == "f0" and self._has_f0:
                 grads[name] = scaled(dbot[name], relative_f0_derivative(p["f0"], p["coat_ior"])[1])
             elif name == "ior" and self._has_ior:

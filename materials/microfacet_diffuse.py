@@ -251,8 +251,7 @@ class _FitParts:
             self.lm_b = (1.0 - 0.5 * s) + 0.5 * s * x  # ((1 − σ/2) n·l + σ/2 (n·l)²)/n·l
         else:
             self.lm_b = 1.0 - 0.5 * s * (x - 1.0)  # (1 − σ/2 (n·l − 1)) n·l / n·l
-        self.vd_den = (s2 + 0.09) * (1.31072 + 0.995584 * e)
-        self.vd_c = s2 / self.vd_den
+        self.vd_c = s2 / ((s2 + 0.09) * (1.31072 + 0.995584 * e))
         self.pexp = (1.0 - 0.3726732 * e.square()) / (0.188566 + 0.388410 * e)
         self.w = x if cosine else torch.ones_like(x)
 
